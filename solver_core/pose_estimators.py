@@ -93,3 +93,94 @@ class BlazePoseEstimator:
                     result = None
         self.roi = bp.tracking_roi(result, self.config) if result is not None else None
         return result
+
+
+IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
+IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
+HMR_INPUT_SIZE = 256
+HMR_ASPECT = 192 / 256  # width / height of the person box HMR2.0 was trained on
+HMR_OUTPUTS = ("global_orient", "body_pose", "betas", "pred_cam")
+
+
+def hmr_crop_box(box: np.ndarray, aspect: float = HMR_ASPECT) -> tuple[np.ndarray, float]:
+    """Person box (x0, y0, x1, y1) -> (centre (2,), side) of the square crop: the box is grown to
+    the width:height ``aspect`` and the crop's side is the larger side of that box."""
+    box = np.asarray(box, np.float64)
+    centre = (box[:2] + box[2:]) / 2
+    w, h = box[2] - box[0], box[3] - box[1]
+    if w > h * aspect:
+        h = w / aspect
+    else:
+        w = h * aspect
+    return centre, float(max(w, h))
+
+
+def hmr_input(image_rgb: np.ndarray, centre: np.ndarray, side: float, size: int = HMR_INPUT_SIZE) -> np.ndarray:
+    """Square crop -> (1, 3, size, size) float32, ImageNet-normalised RGB."""
+    scale = side / size
+    # crop pixel centre u -> image pixel-centre coordinate: centre - side/2 + (u + 0.5) * scale - 0.5
+    m = np.array([[scale, 0.0, centre[0] - side / 2 + 0.5 * scale - 0.5],
+                  [0.0, scale, centre[1] - side / 2 + 0.5 * scale - 0.5]])
+    crop = cv2.warpAffine(image_rgb, m, (size, size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0))
+    x = (crop.astype(np.float32) / 255.0 - IMAGENET_MEAN) / IMAGENET_STD
+    return x.transpose(2, 0, 1)[None].astype(np.float32)
+
+
+@dataclass(frozen=True)
+class HmrResult:
+    """One frame of an HMR-class model: raw output arrays (batch dim removed) and the crop."""
+
+    global_orient: np.ndarray  # one rotation: (1,3,3) / (3,3) / (6,) / (3,) ...
+    body_pose: np.ndarray  # 23 rotations in any layout
+    betas: np.ndarray  # (B,)
+    pred_cam: np.ndarray | None  # (3,) weak-perspective camera of the crop, if given
+    box: np.ndarray  # person box (x0, y0, x1, y1), image pixels
+    score: float  # person score of the box source
+
+
+class OnnxHmrEstimator:
+    """A user's HMR-class ONNX model: RGB crop (N, 3, 256, 256) -> SMPL parameters.
+
+    Outputs are matched by name (``global_orient``, ``body_pose``, ``betas``, and
+    optionally ``pred_cam``; a name containing the key also matches, e.g.
+    ``pred_smpl_params/body_pose``).  Person boxes come from BlazePose (the box of
+    its tracked landmarks).
+    """
+
+    def __init__(self, model_path: str | Path, person_tracker: BlazePoseEstimator, threads: int = 1):
+        self.session = make_session(model_path, threads)
+        inputs = self.session.get_inputs()
+        if len(inputs) != 1:
+            raise ValueError(f"{model_path}: expected one image input, found {[i.name for i in inputs]}")
+        self._input = inputs[0].name
+        shape = inputs[0].shape
+        if len(shape) != 4 or shape[1] not in (3, "3") or any(
+                isinstance(s, int) and s != HMR_INPUT_SIZE for s in shape[2:]):
+            raise ValueError(f"{model_path}: input {self._input} has shape {shape}, expected (N, 3, 256, 256)")
+        names = [o.name for o in self.session.get_outputs()]
+        self._outputs = {}
+        for key in HMR_OUTPUTS:
+            exact = [n for n in names if n == key]
+            loose = [n for n in names if key in n.lower()]
+            match = exact or loose
+            if not match and key != "pred_cam":
+                raise ValueError(f"{model_path}: no output named like {key!r} (outputs: {names})")
+            if match:
+                self._outputs[key] = match[0]
+        self.tracker = person_tracker
+
+    def reset(self) -> None:
+        self.tracker.reset()
+
+    def process(self, image_rgb: np.ndarray) -> HmrResult | None:
+        person = self.tracker.process(image_rgb)
+        if person is None:
+            return None
+        box = bp.person_box(person, image_rgb.shape[:2])
+        centre, side = hmr_crop_box(box)
+        keys = list(self._outputs)
+        outs = self.session.run([self._outputs[k] for k in keys], {self._input: hmr_input(image_rgb, centre, side)})
+        got = {k: np.asarray(v)[0] for k, v in zip(keys, outs)}
+        return HmrResult(global_orient=got["global_orient"], body_pose=got["body_pose"], betas=got["betas"],
+                         pred_cam=got.get("pred_cam"), box=box, score=person.pose_score)
