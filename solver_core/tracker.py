@@ -211,9 +211,10 @@ def gated_assignment(predicted: np.ndarray, gates: np.ndarray, points: np.ndarra
     sigma2 = (gates[rows] / 3.0) ** 2
     cost = d2[np.ix_(rows, cols)] / (2 * sigma2[:, None]) + 1.5 * np.log(sigma2)[:, None]
     sub_inside = inside[np.ix_(rows, cols)]
-    # Out-of-gate pairs get a cost above any in-gate total so they are used only when nothing else
-    # is possible, and are then discarded below.
-    big = (np.abs(cost[sub_inside]).max() + 1.0) * (min(len(rows), len(cols)) + 1)
+    # Out-of-gate pairs cost more than any two in-gate matchings can differ (2 * pairs * max|cost|),
+    # so the solver first maximises the number of in-gate pairs, then minimises their cost; the
+    # out-of-gate pairs it had to fill in are discarded below.
+    big = 2.0 * (np.abs(cost[sub_inside]).max() + 1.0) * (min(len(rows), len(cols)) + 1)
     cost = np.where(sub_inside, cost, big)
     r, c = linear_sum_assignment(cost)
     keep = sub_inside[r, c]
