@@ -30,9 +30,10 @@ def _preflight(path: Path) -> dict:
     size = path.stat().st_size
     with open(path, "rb") as fh:
         head = fh.read(512)
-        if len(head) < 2 or head[1] != 0x50:
-            got = f"0x{head[1]:02x}" if len(head) >= 2 else "missing"
-            raise MarkerFileError(f"{name}: not a C3D file (second byte is {got}; C3D files have 0x50)")
+        if len(head) < 2:
+            raise MarkerFileError(f"{name}: too short to be a C3D file ({size} bytes)")
+        if head[1] != 0x50:
+            raise MarkerFileError(f"{name}: not a C3D file (second byte is 0x{head[1]:02x}; C3D files have 0x50)")
         if len(head) < 512:
             raise MarkerFileError(f"{name}: truncated C3D: {size} bytes, shorter than the 512-byte header")
         pblock = head[0]
@@ -55,11 +56,25 @@ def _preflight(path: Path) -> dict:
             f"{name}: truncated C3D: file ends inside the parameter section ({size} of {params_end} bytes)"
         )
     declared = last - first + 1 if last >= first else 0
-    if data_start >= 2 and declared > 0 and (n_points or analog_total) and size <= (data_start - 1) * 512:
-        raise MarkerFileError(
-            f"{name}: truncated C3D: file ends before the data starts "
-            f"({size} bytes; header declares {declared} frames from block {data_start})"
-        )
+    # Sign of the header's scale float says float (negative) or integer data; its sign bit sits in a
+    # different byte for each processor's float format.
+    sign_byte = {84: head[15], 85: head[13], 86: head[12]}[proc]
+    word = 4 if sign_byte & 0x80 else 2
+    data_offset = (data_start - 1) * 512
+    if data_start >= 2 and declared > 0 and (n_points or analog_total):
+        if size <= data_offset:
+            raise MarkerFileError(
+                f"{name}: truncated C3D: file ends before the data starts "
+                f"({size} bytes; header declares {declared} frames from block {data_start})"
+            )
+        frame_bytes = (4 * n_points + analog_total) * word
+        need = data_offset + declared * frame_bytes
+        if size < need:
+            held = (size - data_offset) // frame_bytes
+            raise MarkerFileError(
+                f"{name}: truncated C3D: header declares {declared} frames ({need} bytes) "
+                f"but the file has {size} bytes, about {held} frames"
+            )
     return {
         "size": size,
         "proc": proc,
@@ -140,10 +155,9 @@ def _read_with_ezc3d(path: Path, pre: dict) -> RawMarkers:
     params = c["parameters"]
     pts = np.asarray(c["data"]["points"], dtype=np.float64)  # (4, M, T)
     T = pts.shape[2] if pts.ndim == 3 else 0
-    head = c["header"]["points"]
-    declared = int(head["last_frame"]) - int(head["first_frame"]) + 1
-    if 0 < T < declared or (T == 0 and pre["declared_frames"] > 0 and pre["n_points"] > 0):
-        raise _truncation_error(path, max(declared, pre["declared_frames"]), T, pre["size"])
+    head = c["header"]["points"]  # ezc3d rewrites last_frame to what it read: compare with the raw header
+    if T < pre["declared_frames"] and pre["n_points"] > 0:
+        raise _truncation_error(path, pre["declared_frames"], T, pre["size"])
     coords = pts[:3].transpose(2, 1, 0) if T else np.zeros((0, pts.shape[1] if pts.ndim == 3 else 0, 3))
     scale = _ez_number(params, "POINT", "SCALE") or 0.0
     residuals = _residuals_from_file(path, pre, T, coords.shape[1], scale) if T else None

@@ -99,35 +99,26 @@ def read_trc_raw(path: Path, progress: bool = False) -> RawMarkers:
     M_data = (n_coords + 2) // 3
     M = max(M_data, len(names))
     T = len(rows)
-    coords = np.full((T, M, 3), np.nan)
+    width = 3 * M
+    values: list[list[float]] = []
     frame_no = np.zeros(T, dtype=np.float64)
     times = np.full(T, np.nan)
     n_nan_tokens = 0
+    nan = math.nan
     for r, (i, fields) in enumerate(rows):
         frame_no[r] = float(fields[0])
-        t = _number(fields[1].strip()) if len(fields) > 1 else None
-        times[r] = t if t is not None else np.nan
-        vals = fields[2 : 2 + 3 * M]
-        try:
-            row = [float(v) if v.strip() else math.nan for v in vals]
+        t = _number(fields[1]) if len(fields) > 1 else None
+        times[r] = t if t is not None else nan
+        vals = fields[2 : 2 + width]
+        try:  # fast path: plain numbers and empty fields (float() accepts surrounding spaces)
+            row = [float(v) if v else nan for v in vals]
         except ValueError:
-            row = []
-            for v in vals:
-                v = v.strip()
-                if not v:
-                    row.append(math.nan)
-                    continue
-                x = _number(v)
-                if x is None:
-                    if _NAN_TOKEN.match(v):
-                        row.append(math.nan)
-                        n_nan_tokens += 1
-                        continue
-                    raise MarkerFileError(f"{name}: line {i + 1}: cannot read {v[:20]!r} as a number")
-                row.append(x)
-        flat = coords[r].reshape(-1)
-        flat[: len(row)] = row
-        coords[r] = flat.reshape(M, 3)
+            row, n_bad = _parse_row_slow(vals, name, i)
+            n_nan_tokens += n_bad
+        if len(row) < width:
+            row += [nan] * (width - len(row))
+        values.append(row)
+    coords = np.array(values, dtype=np.float64).reshape(T, M, 3)
     coords[~np.isfinite(coords).all(axis=-1)] = np.nan  # any blank / inf coordinate: whole point missing
 
     # --- header vs data ---
@@ -137,8 +128,6 @@ def read_trc_raw(path: Path, progress: bool = False) -> RawMarkers:
         warnings.append(f"header NumMarkers={declared_markers} but the rows hold {M} markers; using {M}")
     if names and M_data > len(names):
         warnings.append(f"{len(names)} marker names but rows hold {M_data} points; extra columns unnamed")
-    if len(set(widths)) > 1 and not raw_unlabeled:
-        warnings.append("rows have different widths; short rows padded as missing")
     declared_frames = _int(header.get("numframes"))
     if declared_frames is not None and declared_frames != T:
         hint = " (file truncated?)" if declared_frames > T else ""
@@ -198,6 +187,25 @@ def read_trc_raw(path: Path, progress: bool = False) -> RawMarkers:
         warnings=warnings,
         meta=meta,
     )
+
+
+def _parse_row_slow(vals: list[str], name: str, line_index: int) -> tuple[list[float], int]:
+    """Row with blanks padded by spaces or NaN spelled the C runtime way ('-nan(ind)', '1.#QNAN')."""
+    row: list[float] = []
+    n_nan_tokens = 0
+    for v in vals:
+        v = v.strip()
+        if not v:
+            row.append(math.nan)
+            continue
+        x = _number(v)
+        if x is None:
+            if not _NAN_TOKEN.match(v):
+                raise MarkerFileError(f"{name}: line {line_index + 1}: cannot read {v[:20]!r} as a number")
+            x = math.nan
+            n_nan_tokens += 1
+        row.append(x)
+    return row, n_nan_tokens
 
 
 def _trim(fields: list[str]) -> list[str]:

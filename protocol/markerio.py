@@ -620,7 +620,10 @@ def _interpret(raw: RawMarkers, name: str, keep_model_points: bool = False) -> M
             f"({spread_m:.4g} m); the data look like {best}, using {best}"
         )
         unit = best
-    positions = coords * _UNIT_METRES[unit]
+    # Divide by 1000 rather than multiply by 0.001: the result is then the correctly rounded metre
+    # value, identical to what any other tool computes from the same millimetres.
+    per_metre = 1.0 / _UNIT_METRES[unit]
+    positions = coords / round(per_metre) if per_metre >= 1 and per_metre == round(per_metre) else coords * _UNIT_METRES[unit]
 
     # --- labels: prefixes, placeholders, uniqueness ---
     labels = _strip_prefixes(raw_labels, raw.label_prefixes, warnings)
@@ -796,16 +799,12 @@ def write_trc(path, positions, rate_hz, labels=None, up_axis: str = "+y", units:
         "",
     ]
     data = pos * scale
-    fmt = f"{{:.{decimals}f}}"
+    data[np.isnan(data).any(axis=-1)] = np.nan  # a point is missing as a whole
+    fmt = f"{{:.{decimals}f}}".format
     for t in range(T):
-        fields = [str(t + 1), f"{t / rate:.6f}"]
-        row = data[t]
-        for m in range(M):
-            if np.isnan(row[m]).any():
-                fields += ["", "", ""]
-            else:
-                fields += [fmt.format(row[m, 0]), fmt.format(row[m, 1]), fmt.format(row[m, 2])]
-        lines.append("\t".join(fields))
+        # NaN formats as 'nan'; blank it so missing markers are empty fields, as OpenSim writes them.
+        coords = "\t".join(map(fmt, data[t].ravel().tolist())).replace("nan", "")
+        lines.append(f"{t + 1}\t{t / rate:.6f}\t{coords}")
     tmp = _atomic_target(path)
     try:
         tmp.write_text("\n".join(lines) + "\n", encoding="ascii")
