@@ -235,6 +235,9 @@ class Publisher:
         self.last_sent[topic] = (seq, int(stamp_ns))
         return seq
 
+    def next_seq(self, topic: str) -> int:
+        return self._seq[topic]
+
     def send_probe(self, topic: str, nonce: int) -> None:
         """Probes carry seq -1: they are not part of the topic's numbered stream."""
         msg = Probe(topic=topic, publisher=self.node, nonce=nonce)

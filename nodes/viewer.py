@@ -1,0 +1,120 @@
+"""viewer: latest-only look at the graph -- a PNG of the newest skeleton + markers and/or a status line.
+
+Both inputs use the ``latest`` queue policy: a slow viewer skips frames
+(counted as superseded) and never slows the graph down. Drawing is an
+orthographic front view: horizontal = the first non-vertical world axis,
+vertical = the capture's up axis.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from .base import LATEST, Node, Port
+
+AXES = {"x": 0, "y": 1, "z": 2}
+
+
+@dataclass(frozen=True)
+class ViewerConfig:
+    out_png: str = ""  # '' = no image
+    period_s: float = 0.5
+    status: bool = True  # print a status line to stderr every period
+    size: int = 480  # image height and width in pixels
+
+    def __post_init__(self):
+        if self.period_s <= 0 or self.size < 64:
+            raise ValueError("period_s > 0 and size >= 64 are required")
+        if self.out_png and not self.out_png.endswith(".png"):
+            raise ValueError(f"parameter 'out_png' must end in .png, got {self.out_png!r}")
+
+
+def project(points: np.ndarray, up_axis: str) -> np.ndarray:
+    """(N,3) world -> (N,2) [horizontal, vertical] for a front view."""
+    up = AXES[up_axis[-1]]
+    horizontal = next(a for a in range(3) if a != up)
+    sign = -1.0 if up_axis.startswith("-") else 1.0
+    return np.stack([points[:, horizontal], sign * points[:, up]], axis=1)
+
+
+class Viewer(Node):
+    Config = ViewerConfig
+    SUBSCRIBES = {
+        "solved": Port("body/solved", types=("SolvedFrame",), policy=LATEST, optional=True),
+        "markers": Port("markers/raw", types=("MarkerFrame",), policy=LATEST, optional=True),
+    }
+
+    def setup(self) -> None:
+        from uuomocap.solver_core.body_model import SMPL_PARENTS
+
+        self.parents = SMPL_PARENTS
+        self.timer_s = self.config.period_s
+        self.solved = self.markers = None
+        self.latency_ms = {"solved": float("nan"), "markers": float("nan")}
+        self.frames_drawn = 0
+
+    def on_solved(self, msg, env) -> None:
+        self.solved = msg
+        self.latency_ms["solved"] = (time.monotonic_ns() - env.publish_ns) / 1e6
+
+    def on_markers(self, msg, env) -> None:
+        self.markers = msg
+        self.latency_ms["markers"] = (time.monotonic_ns() - env.publish_ns) / 1e6
+
+    def on_timer(self) -> None:
+        if self.config.status:
+            print(self.status_line(), file=sys.stderr, flush=True)
+        if self.config.out_png and (self.solved is not None or self.markers is not None):
+            self.draw(self.config.out_png)
+
+    def status_line(self) -> str:
+        parts = [f"[{self.name}]"]
+        m, s = self.markers, self.solved
+        if m is not None:
+            parts.append(f"markers #{m.frame_index} {int(m.visible.sum())}/{len(m.visible)} seen, {self.latency_ms['markers']:.1f} ms")
+        if s is not None:
+            parts.append(f"solved #{s.frame_index} {s.kind} residual {s.residual_m * 1000:.1f} mm, {self.latency_ms['solved']:.1f} ms")
+        sup = sum(st.superseded for st in self._sub.stats.values())
+        parts.append(f"skipped {sup}")
+        return " | ".join(parts)
+
+    def draw(self, path: str) -> None:
+        import cv2
+
+        up = self.markers.up_axis if self.markers is not None else "+z"
+        pts = []
+        if self.markers is not None:
+            pts.append(project(np.asarray(self.markers.positions[self.markers.visible], np.float64), up))
+        if self.solved is not None:
+            pts.append(project(np.asarray(self.solved.joints, np.float64), up))
+        allp = np.concatenate(pts) if pts else np.zeros((0, 2))
+        allp = allp[np.isfinite(allp).all(axis=1)]
+        n = self.config.size
+        img = np.full((n, n, 3), 255, np.uint8)
+        if len(allp):
+            lo, hi = allp.min(axis=0), allp.max(axis=0)
+            scale = 0.9 * n / max(float((hi - lo).max()), 0.5)
+            centre = (lo + hi) / 2
+
+            def px(p):
+                q = (p - centre) * scale
+                return int(n / 2 + q[0]), int(n / 2 - q[1])
+
+            if self.markers is not None:
+                for p in pts[0]:
+                    cv2.circle(img, px(p), 3, (40, 40, 220), -1)
+            if self.solved is not None:
+                j = pts[-1]
+                for child, parent in enumerate(self.parents):
+                    if parent >= 0:
+                        cv2.line(img, px(j[parent]), px(j[child]), (40, 140, 40), 2)
+        cv2.putText(img, self.status_line()[len(self.name) + 5:][:70], (5, n - 8), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1)
+        tmp = path + ".tmp.png"
+        cv2.imwrite(tmp, img)
+        os.replace(tmp, path)
+        self.frames_drawn += 1
