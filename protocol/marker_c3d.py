@@ -69,7 +69,10 @@ def _preflight(path: Path) -> dict:
             )
         frame_bytes = (4 * n_points + analog_total) * word
         need = data_offset + declared * frame_bytes
-        if size < need:
+        # Only when even 2-byte words would not fit: writers sometimes disagree between the header's
+        # scale sign and POINT:SCALE, and the libraries then read frame by frame (checked after).
+        need_int = data_offset + declared * (4 * n_points + analog_total) * 2
+        if size < need and size < need_int:
             held = (size - data_offset) // frame_bytes
             raise MarkerFileError(
                 f"{name}: truncated C3D: header declares {declared} frames ({need} bytes) "
@@ -161,6 +164,8 @@ def _read_with_ezc3d(path: Path, pre: dict) -> RawMarkers:
     coords = pts[:3].transpose(2, 1, 0) if T else np.zeros((0, pts.shape[1] if pts.ndim == 3 else 0, 3))
     scale = _ez_number(params, "POINT", "SCALE") or 0.0
     residuals = _residuals_from_file(path, pre, T, coords.shape[1], scale) if T else None
+    if residuals is not None and not np.array_equal(residuals < 0, np.isnan(coords).any(axis=-1)):
+        residuals = None  # our decoding disagrees with ezc3d about which points are valid: trust ezc3d
     if residuals is None and T:
         meta_points = c["data"].get("meta_points") or {}
         if "residuals" in meta_points:

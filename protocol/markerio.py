@@ -208,7 +208,11 @@ MARKER_READERS: dict[str, ReaderFn] = {".c3d": _c3d_reader, ".trc": _trc_reader}
 
 
 def register_reader(suffix: str, reader: ReaderFn) -> None:
-    """Add a reader for files ending in ``suffix`` (e.g. ``".mcap"``)."""
+    """Add a reader for files ending in ``suffix`` (e.g. ``".mcap"``).
+
+    ``reader(path: Path, progress: bool = False)`` returns RawMarkers (interpreted here) or a finished
+    MarkerData, and raises MarkerFileError for files it cannot read.
+    """
     suffix = suffix.lower()
     if not suffix.startswith("."):
         suffix = "." + suffix
@@ -578,10 +582,8 @@ def _interpret(raw: RawMarkers, name: str, keep_model_points: bool = False) -> M
 
     # --- missing encodings -> NaN ---
     missing = np.isnan(coords).any(axis=-1)
-    n_zero = 0
     if residuals is not None:
-        neg = residuals < 0
-        missing |= neg
+        missing |= residuals < 0
     zeros = np.all(coords == 0.0, axis=-1) & ~missing
     n_zero = int(zeros.sum())
     if n_zero:
@@ -622,8 +624,8 @@ def _interpret(raw: RawMarkers, name: str, keep_model_points: bool = False) -> M
         unit = best
     # Divide by 1000 rather than multiply by 0.001: the result is then the correctly rounded metre
     # value, identical to what any other tool computes from the same millimetres.
-    per_metre = 1.0 / _UNIT_METRES[unit]
-    positions = coords / round(per_metre) if per_metre >= 1 and per_metre == round(per_metre) else coords * _UNIT_METRES[unit]
+    divisor = {"mm": 1000.0, "cm": 100.0, "dm": 10.0}.get(unit)
+    positions = coords / divisor if divisor else coords * _UNIT_METRES[unit]
 
     # --- labels: prefixes, placeholders, uniqueness ---
     labels = _strip_prefixes(raw_labels, raw.label_prefixes, warnings)
@@ -640,8 +642,8 @@ def _interpret(raw: RawMarkers, name: str, keep_model_points: bool = False) -> M
     up = raw.up_axis
     if up is not None:
         source = raw.up_axis_origin
-        guess, _why = infer_up_axis(positions)
-        if guess is not None and guess != up:
+        guess, why = infer_up_axis(positions)
+        if guess is not None and guess != up and "sign assumed" not in why:
             warnings.append(f"{raw.up_axis_origin} gives up axis {up} but the markers look {guess}-up; keeping {up}")
     else:
         guess, why = infer_up_axis(positions)
