@@ -708,6 +708,9 @@ class NatNetClient:
 
     def _handle(self, data: bytes) -> None:
         self.stats.packets += 1
+        if self.version is None and data[:2] == _HEADER.pack(NAT_FRAMEOFDATA, 0)[:2]:
+            self.stats.ignored += 1  # multicast frames before NAT_SERVERINFO told us the layout
+            return
         try:
             message_id, value = decode_packet(data, self.version)
         except NatNetError as err:

@@ -1,0 +1,89 @@
+"""tracker: unlabeled point clouds (``markers/raw``) -> stable tracks (``markers/tracked``).
+
+Each incoming MarkerFrame's visible points go through
+:class:`uuomocap.solver_core.tracker.MarkerTracker`; the output MarkerFrame has
+fixed size ``max_tracks``: slot ``i`` holds track ``track_ids[i]`` (-1 = empty
+slot), ``visible[i]`` says it was measured this frame, ``positions[i]`` is NaN
+otherwise.  A track keeps its slot while it lives, so the slot index is a
+stable marker index for the segmenter and solver; a slot whose id changes is a
+new marker.  Parameters are the tracker's (see ``TrackerConfig``); the rate
+comes from the stream unless ``use_stream_rate`` is off.
+
+Stamps that do not increase (Motive restarted, a replay looped back) reset the
+tracker: all ids are new afterwards (counted as ``resets``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from uuomocap.protocol.messages import MarkerFrame
+from uuomocap.solver_core.tracker import MarkerTracker, TrackerConfig
+
+from .base import Node, Port
+
+
+@dataclass(frozen=True)
+class TrackerNodeConfig(TrackerConfig):
+    # Take rate_hz from the incoming MarkerFrames (when they carry one) instead of the parameter.
+    use_stream_rate: bool = True
+    log_every_s: float = 10.0  # period of the one-line tracking summary in the log (0 = never)
+
+    def tracker_config(self, rate_hz: float | None = None) -> TrackerConfig:
+        names = {f.name for f in dataclasses.fields(TrackerConfig)}
+        values = {k: getattr(self, k) for k in names}
+        if rate_hz:
+            values["rate_hz"] = float(rate_hz)
+        return TrackerConfig(**values)
+
+
+class Tracker(Node):
+    Config = TrackerNodeConfig
+    SUBSCRIBES = {"markers": Port("markers/raw", types=("MarkerFrame",))}
+    PUBLISHES = {"tracked": "markers/tracked"}
+
+    def setup(self) -> None:
+        self.tracker = MarkerTracker(self.config.tracker_config())
+        self.timer_s = self.config.log_every_s or None
+        self.last_stamp: int | None = None
+
+    def on_markers(self, msg: MarkerFrame, env) -> None:
+        c = self.config
+        rate = msg.rate_hz if c.use_stream_rate and msg.rate_hz > 0 else 0.0
+        if rate and abs(rate - self.tracker.config.rate_hz) > 1e-6 * rate:
+            if self.tracker.stats.frames:
+                self.log.info("stream rate changed to %.3f Hz: restarting the tracker", rate)
+            self.tracker = MarkerTracker(c.tracker_config(rate))
+            self.last_stamp = None
+        if self.last_stamp is not None and msg.stamp_ns <= self.last_stamp:
+            self.count("resets")
+            self.log.warning("stamp went back (%d -> %d ns): restarting tracks", self.last_stamp, msg.stamp_ns)
+            self.tracker.reset()
+        self.last_stamp = msg.stamp_ns
+        positions = np.asarray(msg.positions)[np.asarray(msg.visible, dtype=bool)]
+        out = self.tracker.step(positions, msg.stamp_ns)
+        self.publish("tracked", MarkerFrame(
+            stamp_ns=msg.stamp_ns,
+            frame_index=msg.frame_index,
+            positions=out.positions,
+            visible=out.visible,
+            track_ids=out.track_ids.astype(np.int32),
+            rate_hz=msg.rate_hz or self.tracker.config.rate_hz,
+            up_axis=msg.up_axis,
+            source=msg.source,
+        ), msg.stamp_ns)
+        st = self.tracker.stats
+        self.counters.update({f"tracker_{k}": v for k, v in st.as_dict().items()})
+
+    def on_eos(self, port: str, env) -> None:
+        self.end_stream("tracked")  # a finished replay finishes the tracked stream too
+
+    def on_timer(self) -> None:
+        st = self.tracker.stats
+        if st.frames:
+            self.log.info("tracks: %d born, %d re-acquired, %d died; %.1f%% of points tracked, %d ghost tracks",
+                          st.births, st.reacquired, st.deaths, 100.0 * st.assigned_points / max(st.points, 1),
+                          st.ghost_tracks)

@@ -1,0 +1,330 @@
+"""NatNet codec, client and loopback server: round trips, malformed packets, a real UDP stream."""
+
+from __future__ import annotations
+
+import socket
+import struct
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from uuomocap.protocol import natnet as nn
+
+V31, V41 = (3, 1), (4, 1)
+
+
+def rich_frame(frame_number: int = 42, seed: int = 0) -> nn.FrameOfData:
+    """A frame using every section, with exactly representable float32 values."""
+    rng = np.random.default_rng(seed)
+    f32 = lambda *shape: rng.uniform(-2, 2, shape).astype(np.float32)  # noqa: E731
+    rb = np.zeros(2, nn.RIGID_BODY_DTYPE)
+    rb["id"] = [3, 9]
+    rb["position"] = f32(2, 3)
+    rb["orientation"] = [[0, 0, 0, 1], [0.5, 0.5, 0.5, 0.5]]
+    rb["mean_error"] = [0.0012, 0.0]
+    rb["params"] = [nn.RIGID_BODY_TRACKING_VALID, 0]
+    markers = nn.labeled_marker_records(
+        f32(5, 3), ids=[(1 << 16) | 1, (1 << 16) | 2, 77, 78, 79],
+        params=[nn.MARKER_MODEL_SOLVED | nn.MARKER_HAS_MODEL] * 2 + [nn.MARKER_UNLABELED] * 2 + [nn.MARKER_OCCLUDED],
+        residuals=[0.5, 0.25, 0.0, 0.125, 1.0],
+    )
+    return nn.FrameOfData(
+        frame_number=frame_number,
+        marker_sets={"Actor": f32(2, 3), "all": f32(3, 3)},
+        other_markers=f32(4, 3),
+        rigid_bodies=rb,
+        skeletons=[nn.Skeleton(1, rb[:1].copy()), nn.Skeleton(2, rb.copy())],
+        assets=[nn.Asset(5, rb[1:].copy(), markers[:2].copy())],
+        labeled_markers=markers,
+        force_plates=[nn.AnalogDevice(1, [np.arange(4, dtype=np.float32), np.ones(2, np.float32)])],
+        devices=[nn.AnalogDevice(2, [np.full(3, 0.5, np.float32)])],
+        timecode=0x01020304, timecode_sub=7, timestamp=1234.5678125,
+        stamp_camera_mid_exposure=10_000_000, stamp_data_received=10_000_500, stamp_transmit=10_003_000,
+        precision_timestamp_secs=1_700_000_000, precision_timestamp_frac=123456,
+        params=nn.FRAME_RECORDING,
+    )
+
+
+def assert_frames_equal(a: nn.FrameOfData, b: nn.FrameOfData, version) -> None:
+    assert a.frame_number == b.frame_number
+    assert a.marker_sets.keys() == b.marker_sets.keys()
+    for k in a.marker_sets:
+        np.testing.assert_array_equal(a.marker_sets[k], b.marker_sets[k])
+    np.testing.assert_array_equal(a.other_markers, b.other_markers)
+    np.testing.assert_array_equal(a.rigid_bodies, b.rigid_bodies)
+    assert [(s.id, s.rigid_bodies.tobytes()) for s in a.skeletons] == [(s.id, s.rigid_bodies.tobytes()) for s in b.skeletons]
+    np.testing.assert_array_equal(a.labeled_markers, b.labeled_markers)
+    for x, y in ((a.force_plates, b.force_plates), (a.devices, b.devices)):
+        assert [(d.id, [c.tolist() for c in d.channels]) for d in x] == [(d.id, [c.tolist() for c in d.channels]) for d in y]
+    for name in ("timecode", "timecode_sub", "timestamp", "stamp_camera_mid_exposure", "stamp_data_received",
+                 "stamp_transmit", "params"):
+        assert getattr(a, name) == getattr(b, name), name
+    if version >= (4, 1):
+        assert [(s.id, s.rigid_bodies.tobytes(), s.markers.tobytes()) for s in a.assets] == \
+               [(s.id, s.rigid_bodies.tobytes(), s.markers.tobytes()) for s in b.assets]
+        assert (a.precision_timestamp_secs, a.precision_timestamp_frac) == (b.precision_timestamp_secs, b.precision_timestamp_frac)
+    else:
+        assert b.assets == [] and b.precision_timestamp_secs == 0
+
+
+@pytest.mark.parametrize("version", [(3, 0), V31, (4, 0), V41, (4, 2)])
+def test_frame_round_trip(version):
+    frame = rich_frame()
+    packet = nn.encode_frame_of_data(frame, version)
+    message_id, decoded = nn.decode_packet(packet, version)
+    assert message_id == nn.NAT_FRAMEOFDATA
+    assert_frames_equal(frame, decoded, version)
+    assert decoded.is_recording and not decoded.tracked_models_changed
+    # Encoding the decoded frame again gives the same bytes.
+    assert nn.encode_frame_of_data(decoded, version) == packet
+
+
+def test_layouts_differ_as_specified():
+    frame = rich_frame()
+    p31, p41 = nn.encode_frame_of_data(frame, V31), nn.encode_frame_of_data(frame, V41)
+    # 3.x: the marker-set count is followed directly by the first name.
+    assert struct.unpack_from("<ii", p31, 4) == (42, 2) and p31[12:18] == b"Actor\0"
+    # 4.1: count, then the section's byte size, then the name.
+    count, size = struct.unpack_from("<ii", p41, 8)
+    assert count == 2 and size == len(b"Actor\0") + 4 + 24 + len(b"all\0") + 4 + 36 and p41[16:22] == b"Actor\0"
+    assets = 8 + 4 + 4 + 38 + 4 + 2 * 26  # section header + one asset (1 rigid body, 2 markers)
+    assert len(p41) - len(p31) == 7 * 4 + assets + 8  # 7 sized sections, assets, precision stamp
+    # Server info: 279 bytes, fields at the documented offsets.
+    info = nn.ServerInfo(app_name="Motive", app_version=(3, 1, 2, 1), natnet_version=(4, 1, 0, 0),
+                         high_res_clock_hz=3_000_000_000, data_port=1511, multicast=True,
+                         multicast_group="239.255.42.99")
+    packet = nn.encode_server_info(info)
+    assert struct.unpack_from("<HH", packet) == (nn.NAT_SERVERINFO, nn.SERVER_INFO_BYTES)
+    assert nn.decode_packet(packet)[1] == info
+
+
+def test_point_cloud_excludes_occluded_and_falls_back_to_legacy_markers():
+    frame = rich_frame()
+    pos, ids, labelled = frame.point_cloud()
+    assert len(pos) == 4 and labelled.tolist() == [True, True, False, False]
+    np.testing.assert_array_equal(pos, frame.labeled_markers["position"][:4])
+    legacy = nn.FrameOfData(other_markers=np.ones((3, 3), np.float32))
+    pos, ids, labelled = legacy.point_cloud()
+    assert pos.shape == (3, 3) and (ids == -1).all() and not labelled.any()
+
+
+def test_newer_sized_sections_are_skipped():
+    frame = rich_frame()
+    packet = bytearray(nn.encode_frame_of_data(frame, V41))
+    suffix = 40 + 8 + 2 + 4  # times, precision stamp, params, end-of-data
+    extra = struct.pack("<ii", 1, 6) + b"IMU..."  # what a 4.2+ server may append after devices
+    packet[-suffix:-suffix] = extra
+    struct.pack_into("<H", packet, 2, len(packet) - 4)
+    _, decoded = nn.decode_packet(bytes(packet), (4, 2))
+    assert decoded.skipped_sections == 1 and decoded.stamp_transmit == frame.stamp_transmit
+
+
+@pytest.mark.parametrize("version", [V31, V41])
+def test_every_truncation_is_rejected(version):
+    packet = nn.encode_frame_of_data(rich_frame(), version)
+    payload = packet[4:]
+    for cut in range(len(payload) - 4):  # dropping only the optional end-of-data tag is legal
+        with pytest.raises(nn.NatNetError):
+            nn.decode_frame_of_data(payload[:cut], version)
+    with pytest.raises(nn.NatNetError, match="header says"):
+        nn.decode_packet(packet[:-1], version)
+    with pytest.raises(nn.NatNetError, match="shorter than"):
+        nn.decode_packet(packet[:3], version)
+
+
+def test_bad_counts_strings_and_versions_are_rejected():
+    payload = bytearray(nn.encode_frame_of_data(rich_frame(), V31)[4:])
+    bad = payload.copy()
+    struct.pack_into("<i", bad, 4, -1)  # negative marker-set count
+    with pytest.raises(nn.NatNetError, match="count"):
+        nn.decode_frame_of_data(bytes(bad), V31)
+    bad = payload.copy()
+    struct.pack_into("<i", bad, 4, 1 << 30)  # a count that would need gigabytes
+    with pytest.raises(nn.NatNetError, match="count"):
+        nn.decode_frame_of_data(bytes(bad), V31)
+    bad = payload[:8] + b"x" * 300  # marker-set name without NUL
+    with pytest.raises(nn.NatNetError, match="NUL"):
+        nn.decode_frame_of_data(bytes(bad), V31)
+    bad = payload.copy()
+    struct.pack_into("<i", bad, len(bad) - 4, 7)
+    with pytest.raises(nn.NatNetError, match="end-of-data"):
+        nn.decode_frame_of_data(bytes(bad), V31)
+    with pytest.raises(nn.NatNetError, match="not supported"):
+        nn.decode_frame_of_data(bytes(payload), (2, 9))
+    with pytest.raises(nn.NatNetError, match="before the server's version"):
+        nn.decode_packet(nn.encode_frame_of_data(rich_frame(), V31), None)
+    with pytest.raises(nn.NatNetError, match="server info"):
+        nn.decode_packet(struct.pack("<HH", nn.NAT_SERVERINFO, 10) + bytes(10))
+    big = nn.FrameOfData(other_markers=np.zeros((6000, 3), np.float32))
+    with pytest.raises(nn.NatNetError, match="limit"):
+        nn.encode_frame_of_data(big, V41)
+
+
+@pytest.mark.parametrize("version", [V31, V41])
+def test_fuzzed_packets_raise_only_natnet_error(version):
+    rng = np.random.default_rng(1)
+    packet = np.frombuffer(nn.encode_frame_of_data(rich_frame(), version), np.uint8)
+    outcomes = {"ok": 0, "rejected": 0}
+    for _ in range(3000):
+        data = packet.copy()
+        idx = rng.integers(4, len(data), rng.integers(1, 6))
+        data[idx] = rng.integers(0, 256, len(idx))
+        try:
+            nn.decode_packet(data.tobytes(), version)
+            outcomes["ok"] += 1
+        except nn.NatNetError:
+            outcomes["rejected"] += 1
+    assert outcomes["rejected"] > 100 and outcomes["ok"] > 100
+
+
+def _stream(server: nn.NatNetServer, frames: list[nn.FrameOfData], rate_hz: float, garbage_every: int = 0,
+            wait_client_s: float = 5.0, errors: list | None = None) -> None:
+    """Server thread body: wait for a client, then send ``frames`` at ``rate_hz``."""
+    try:
+        deadline = time.monotonic() + wait_client_s
+        while not server.clients and time.monotonic() < deadline:
+            server.serve_commands(0.05)
+        start = time.monotonic()
+        for i, frame in enumerate(frames):
+            server.serve_commands(0.0)
+            if garbage_every and i % garbage_every == 0:
+                for addr in list(server.clients):  # malformed datagrams the client must survive
+                    server._sock.sendto(b"\x07\x00\xff\xff" + bytes(10), addr)
+                    server._sock.sendto(b"\x07", addr)
+            server.send_frame(frame)
+            delay = start + (i + 1) / rate_hz - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+        server.serve_commands(0.2)
+    except Exception as exc:  # surfaced by the test
+        if errors is not None:
+            errors.append(exc)
+
+
+def simple_frame(i: int, rate_hz: float = 120.0) -> nn.FrameOfData:
+    points = np.array([[0.1 * np.sin(i / 20), 1.0, 0.0], [0.0, 1.2, 0.1 * np.cos(i / 20)]], np.float32)
+    return nn.FrameOfData(frame_number=1000 + i, labeled_markers=nn.labeled_marker_records(points),
+                          timestamp=10.0 + i / rate_hz)
+
+
+@pytest.mark.parametrize("version", [V41, V31])
+def test_real_udp_unicast_stream_200_frames_in_order(version):
+    info = nn.ServerInfo(natnet_version=version + (0, 0))
+    frames = [simple_frame(i) for i in range(200)]
+    errors: list = []
+    with nn.NatNetServer(info, host="127.0.0.1", command_port=0) as server:
+        thread = threading.Thread(target=_stream, args=(server, frames, 120.0, 50, 5.0, errors), daemon=True)
+        thread.start()
+        with nn.NatNetClient("127.0.0.1", local_address="127.0.0.1", command_port=server.address[1],
+                             keepalive_interval_s=0.2) as client:
+            got_info = client.connect(timeout_s=5.0)
+            received = []
+            deadline = time.monotonic() + 10.0
+            while len(received) < 200 and time.monotonic() < deadline:
+                frame = client.receive(timeout_s=0.5)
+                if frame is not None:
+                    received.append(frame)
+            stats = client.stats
+            thread.join(timeout=5.0)
+    assert not errors and not thread.is_alive()
+    assert got_info.natnet_version[:2] == version
+    assert [f.frame_number for f in received] == [f.frame_number for f in frames]
+    np.testing.assert_array_equal(received[-1].labeled_markers["position"], frames[-1].labeled_markers["position"])
+    assert client.capture_stamp_ns(received[1]) - client.capture_stamp_ns(received[0]) == pytest.approx(1e9 / 120, abs=1)
+    assert stats.frames == 200 and stats.gaps == 0 and stats.stale == 0
+    assert stats.malformed == 2 * 4  # two garbage datagrams every 50 frames, all counted, none fatal
+
+
+def test_client_drops_stale_counts_gaps_and_restarts():
+    client = nn.NatNetClient("127.0.0.1")
+    client.server_info = nn.ServerInfo(natnet_version=(4, 1, 0, 0))
+    for n in [5, 6, 6, 4, 9, 10, 2, 3]:  # duplicate, reordered, 2 lost, playback restarted at 2
+        client._handle(nn.encode_frame_of_data(nn.FrameOfData(frame_number=n), V41))
+    assert [f.frame_number for f in client.poll()] == [5, 6, 9, 10]
+    client.restart_window = 5
+    for n in [2, 3]:
+        client._handle(nn.encode_frame_of_data(nn.FrameOfData(frame_number=n), V41))
+    assert [f.frame_number for f in client.poll()] == [2, 3]
+    s = client.stats
+    assert (s.stale, s.gaps, s.restarts, s.frames) == (4, 2, 1, 6)
+    client.close()
+
+
+def test_keepalive_disconnect_and_foreign_packets():
+    with nn.NatNetServer(command_port=0) as server:
+        with nn.NatNetClient("127.0.0.1", command_port=server.address[1], keepalive_interval_s=0.05) as client:
+            client.open()
+            client.send_command(nn.NAT_CONNECT, "Ping")
+            server.serve_commands(1.0)
+            addr = client.local_command_address
+            assert addr in server.clients
+            client.poll(timeout_s=1.0)
+            assert client.server_info is not None
+            first_seen = server.clients[addr]
+            time.sleep(0.1)
+            client.poll(0.0)  # sends a keep-alive (interval elapsed)
+            server.serve_commands(1.0)
+            assert server.clients[addr] > first_seen
+            # A datagram from another address on the command socket is ignored and counted.
+            other = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            other.bind(("127.0.0.2", 0)) if _can_bind("127.0.0.2") else other.bind(("127.0.0.1", 0))
+            if other.getsockname()[0] != "127.0.0.1":
+                other.sendto(nn.encode_frame_of_data(simple_frame(0), V41), addr)
+                time.sleep(0.05)
+                client.poll(0.2)
+                assert client.stats.foreign == 1 and client.stats.frames == 0
+            other.close()
+        server.serve_commands(1.0)  # the client's NAT_DISCONNECT
+        assert addr not in server.clients
+
+
+def _can_bind(address: str) -> bool:
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.bind((address, 0))
+        return True
+    except OSError:
+        return False
+
+
+def test_connect_times_out_without_server():
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as silent:
+        silent.bind(("127.0.0.1", 0))  # a port that never answers
+        with nn.NatNetClient("127.0.0.1", command_port=silent.getsockname()[1]) as client:
+            t0 = time.monotonic()
+            with pytest.raises(TimeoutError, match="no NatNet server"):
+                client.connect(timeout_s=0.3, retry_interval_s=0.1)
+            assert time.monotonic() - t0 < 2.0
+
+
+def test_multicast_on_loopback():
+    group = "239.255.42.99"
+    info = nn.ServerInfo(natnet_version=(4, 1, 0, 0), multicast=True, multicast_group=group, data_port=0)
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("", 0))
+    data_port = probe.getsockname()[1]
+    probe.close()
+    info.data_port = data_port
+    try:
+        server = nn.NatNetServer(info, command_port=0)
+        client = nn.NatNetClient("127.0.0.1", command_port=server.address[1], multicast=True,
+                                 multicast_group=group, data_port=data_port)
+        client.open()
+    except OSError as exc:
+        pytest.skip(f"no multicast on loopback here: {exc}")
+    with server, client:
+        client.send_command(nn.NAT_CONNECT, "Ping")
+        server.serve_commands(1.0)
+        client.poll(1.0)
+        assert client.server_info is not None and client.server_info.multicast
+        for i in range(5):
+            server.send_frame(simple_frame(i))
+        frames = []
+        deadline = time.monotonic() + 2.0
+        while len(frames) < 5 and time.monotonic() < deadline:
+            frames += client.poll(0.2)
+        if not frames:
+            pytest.skip("multicast datagrams are not looped back on this host")
+        assert [f.frame_number for f in frames] == [1000 + i for i in range(len(frames))]
