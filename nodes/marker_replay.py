@@ -48,7 +48,6 @@ class MarkerReplay(Node):
     PUBLISHES = {"markers": "markers/raw"}
 
     def setup(self) -> None:
-        from uuomocap.protocol import recording  # noqa: F401  (registers .mcap with read_markers)
         from uuomocap.protocol.markerio import read_markers
 
         c = self.config

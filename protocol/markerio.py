@@ -204,7 +204,14 @@ def _trc_reader(path: Path, progress: bool = False) -> RawMarkers:
 # Suffix (lower case, with dot) -> reader(path, progress=bool).  A reader returns RawMarkers (this
 # module interprets units, missing encodings, labels and the up axis) or a finished MarkerData
 # (formats that are already in our conventions, e.g. our own MCAP recordings).
-MARKER_READERS: dict[str, ReaderFn] = {".c3d": _c3d_reader, ".trc": _trc_reader}
+def _mcap_reader(path: Path, progress: bool = False) -> MarkerData:
+    # our own graph recordings (owner: streaming graph, protocol/recording.py)
+    from uuomocap.protocol.recording import read_markers_mcap
+
+    return read_markers_mcap(path)
+
+
+MARKER_READERS: dict[str, ReaderFn] = {".c3d": _c3d_reader, ".trc": _trc_reader, ".mcap": _mcap_reader}
 
 
 def register_reader(suffix: str, reader: ReaderFn) -> None:

@@ -364,15 +364,6 @@ def export_solved_npz(frames, path: str | Path, method: str = "stream", stage_se
     return {"frames": len(frames), "refined": int((kinds == "refined").sum()), "path": str(path)}
 
 
-def _register_with_markerio() -> None:
-    from .markerio import MARKER_READERS, register_reader
-
-    if ".mcap" not in MARKER_READERS:
-        register_reader(".mcap", lambda p, progress=False: read_markers_mcap(p, progress=progress))
-
-
-_register_with_markerio()
-
 __all__ = [
     "RecordingWriter",
     "RecordingError",
