@@ -67,7 +67,14 @@ class LBSOutput:
     joints: torch.Tensor            # (B, 24, 3) posed joint positions (+ trans)
     vertices: torch.Tensor          # (B, N, 3) or (B, P, 3) for a SurfacePoints subset
     joint_rotations: torch.Tensor   # (B, 24, 3, 3) global rotations
-    transforms: torch.Tensor        # (B, 24, 4, 4) skinning transforms (rest -> posed, without trans)
+    skinning: torch.Tensor          # (B, 24, 3, 4) top rows of the skinning transforms
+
+    @property
+    def transforms(self) -> torch.Tensor:
+        """(B, 24, 4, 4) skinning transforms (rest pose -> posed, without trans)."""
+        A = self.skinning
+        row = A.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(A.shape[:-2] + (1, 4))
+        return torch.cat([A, row], dim=-2)
 
 
 def kinematic_levels(parents: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
@@ -94,52 +101,73 @@ class ModelCache:
     def __init__(self, model) -> None:
         self._m = model
 
+    # Vertex data in component-major layout ((3, N): all x, then all y, then all z) so the
+    # skinning below works on long contiguous rows.
     @cached_property
-    def shapedirs_flat(self) -> torch.Tensor:  # (N*3, nb)
-        m = self._m
-        return m.shapedirs.reshape(-1, m.shapedirs.shape[-1]).contiguous()
+    def template_cm(self) -> torch.Tensor:  # (3, N)
+        return self._m.v_template.t().contiguous()
 
     @cached_property
-    def posedirs_flat(self) -> torch.Tensor | None:  # (N*3, 207)
-        m = self._m
-        return None if m.posedirs is None else m.posedirs.reshape(-1, m.posedirs.shape[-1]).contiguous()
+    def shapedirs_cm(self) -> torch.Tensor:  # (nb, 3, N)
+        return self._m.shapedirs.permute(2, 1, 0).contiguous()
 
     @cached_property
-    def joint_template(self) -> torch.Tensor:  # (J, 3)
-        return self._m.J_regressor @ self._m.v_template
+    def posedirs_cm(self) -> torch.Tensor | None:  # (207, 3, N)
+        m = self._m
+        return None if m.posedirs is None else m.posedirs.permute(2, 1, 0).contiguous()
 
     @cached_property
-    def joint_shapedirs(self) -> torch.Tensor:  # (J*3, nb): joints are linear in betas
+    def weights_t(self) -> torch.Tensor:  # (J, N)
+        return self._m.weights.t().contiguous()
+
+    @cached_property
+    def joint_template(self) -> torch.Tensor:  # (2J, 3): rest joints, then offsets to the parent
         m = self._m
-        return torch.einsum("jn,nkb->jkb", m.J_regressor, m.shapedirs).reshape(-1, m.shapedirs.shape[-1]).contiguous()
+        j = m.J_regressor @ m.v_template
+        return torch.cat([j, self._relative(j)])
+
+    @cached_property
+    def joint_shapedirs_t(self) -> torch.Tensor:  # (nb, 2J*3): joints (and offsets) are linear in betas
+        m = self._m
+        jd = torch.einsum("jn,nkb->bjk", m.J_regressor, m.shapedirs)  # (nb, J, 3)
+        return torch.cat([jd, self._relative(jd)], dim=1).reshape(jd.shape[0], -1).contiguous()
+
+    def _relative(self, j: torch.Tensor) -> torch.Tensor:
+        parents = self._m.parents
+        rel = j.clone()
+        rel[..., 1:, :] = j[..., 1:, :] - j[..., parents[1:], :]
+        return rel
 
     @cached_property
     def levels(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
         return kinematic_levels(self._m.parents)
 
     @cached_property
-    def level_order(self) -> tuple[torch.Tensor | None, list[int]]:
-        """Permutation from level-concatenated order back to joint order (None if identity)."""
-        order = torch.cat([torch.zeros(1, dtype=torch.long)] + [ids for ids, _ in self.levels])
-        inverse = torch.argsort(order)
-        if torch.equal(order, torch.arange(order.numel())):
-            return None, [0] + [int(ids.numel()) for ids, _ in self.levels]
-        return inverse, [0] + [int(ids.numel()) for ids, _ in self.levels]
+    def fk_plan(self) -> tuple[list[int] | None, list, torch.Tensor | None]:
+        """How forward kinematics walks the tree, level by level.
 
-    @cached_property
-    def parent_slices(self) -> list[torch.Tensor]:
-        """Per level: positions of the parents inside the previous level's block."""
-        out = []
-        prev = torch.zeros(1, dtype=torch.long)
-        for ids, par in self.levels:
-            lookup = {int(j): i for i, j in enumerate(prev)}
-            out.append(torch.tensor([lookup[int(p)] for p in par]))
-            prev = ids
-        return out
-
-    @cached_property
-    def weights_t(self) -> torch.Tensor:  # (J, N) for one matmul per batch
-        return self._m.weights.t().contiguous()
+        Returns (split sizes, per-level parent selectors, inverse permutation).  When every
+        level's joints are contiguous in joint order (true for SMPL), the local transforms are
+        cut with one torch.split (one cheap backward) instead of per-level slicing (a zero-filled
+        full-size gradient per slice); otherwise split sizes is None and levels are indexed.
+        A parent selector is None (same block or single parent: broadcast), or an index tensor.
+        The inverse permutation maps level order back to joint order (None when identity).
+        """
+        levels = self.levels
+        order = torch.cat([torch.zeros(1, dtype=torch.long)] + [ids for ids, _ in levels])
+        identity = torch.equal(order, torch.arange(order.numel()))
+        sizes = [1] + [int(ids.numel()) for ids, _ in levels] if identity else None
+        parents = []
+        prev = [0]
+        for ids, par in levels:
+            pos = [prev.index(int(p)) for p in par]
+            if len(set(pos)) == 1 and len(prev) == 1 or pos == list(range(len(prev))):
+                parents.append(None)
+            else:
+                parents.append(torch.tensor(pos))
+            prev = [int(i) for i in ids]
+        inverse = None if identity else torch.argsort(order)
+        return sizes, parents, inverse
 
 
 def _shape_betas(betas: torch.Tensor, num_betas: int) -> torch.Tensor:
@@ -152,30 +180,29 @@ def _shape_betas(betas: torch.Tensor, num_betas: int) -> torch.Tensor:
     return betas
 
 
-def _forward_kinematics(cache: ModelCache, rot: torch.Tensor, joints: torch.Tensor):
-    """Global rotations (B,J,3,3) and joint positions (B,J,3) from local rotations and rest joints."""
-    B = rot.shape[0]
-    parents = cache._m.parents
-    rel = joints.clone()
-    rel[:, 1:] = joints[:, 1:] - joints[:, parents[1:]]
-    # Local 3x4 transforms K_j = [R_j | J_j - J_parent]; chain G_j = G_p K_j level by level.
-    local = torch.cat([rot, rel[..., None]], dim=-1)  # (B, J, 3, 4)
-    bottom = rot.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(B, 1, 1, 4)
-    inverse, _ = cache.level_order
-    blocks = [local[:, :1]]
-    prev = local[:, :1]
-    for (ids, _), pos in zip(cache.levels, cache.parent_slices):
-        parent_tf = prev[:, pos]  # (B, n, 3, 4)
-        child = local[:, ids]
-        # [Rp | tp] [Rc | tc; 0 1] = [Rp Rc | Rp tc + tp]
-        child4 = torch.cat([child, bottom.expand(B, ids.numel(), 1, 4)], dim=2)
-        cur = parent_tf @ child4
+_HOMOGENEOUS_ROW = torch.tensor([0.0, 0.0, 0.0, 1.0])
+
+
+def _forward_kinematics(cache: ModelCache, rot: torch.Tensor, rel: torch.Tensor) -> torch.Tensor:
+    """World 3x4 transforms (B, J, 3, 4) from local rotations (B,J,3,3) and offsets to the parent (B,J,3)."""
+    B, J = rot.shape[:2]
+    local = torch.cat([rot, rel[..., None]], dim=-1)  # (B, J, 3, 4) = [R_j | J_j - J_parent]
+    row = _HOMOGENEOUS_ROW.to(rot.dtype).expand(B, J, 1, 4)
+    local4 = torch.cat([local, row], dim=2)  # (B, J, 4, 4)
+    sizes, parent_sel, inverse = cache.fk_plan
+    if sizes is not None:
+        children = torch.split(local4, sizes, dim=1)[1:]
+    else:
+        children = [local4[:, ids] for ids, _ in cache.levels]
+    prev = local[:, :1]  # the root's world transform is its local one
+    blocks = [prev]
+    for child, sel in zip(children, parent_sel):
+        # W_c = W_p [R_c | o_c; 0 0 0 1]
+        cur = (prev if sel is None else prev[:, sel]) @ child
         blocks.append(cur)
         prev = cur
     world = torch.cat(blocks, dim=1)
-    if inverse is not None:
-        world = world[:, inverse]
-    return world[..., :3], world[..., 3]
+    return world if inverse is None else world[:, inverse]
 
 
 def forward(
@@ -208,45 +235,59 @@ def forward(
     if betas.shape[0] not in (1, B):
         raise ValueError(f"betas batch {betas.shape[0]} does not match pose batch {B}")
 
-    # Rest joints directly from betas (no mesh needed).
-    rest_joints = cache.joint_template + (betas @ cache.joint_shapedirs[:, :nb].t()).reshape(-1, J, 3)
-    rest_joints = rest_joints.expand(B, J, 3)
-    glob_rot, glob_pos = _forward_kinematics(cache, rot, rest_joints)
-    # Skinning transforms: A_j x = G_j (x - J_j) + t_j.
+    # Rest joints and their offsets to the parent straight from betas (no mesh needed).
+    jt = cache.joint_template
+    jt = (jt.reshape(1, -1) + betas @ cache.joint_shapedirs_t[:nb]).reshape(-1, 2 * J, 3).expand(B, 2 * J, 3)
+    rest_joints, rel = torch.split(jt, [J, J], dim=1)
+    world = _forward_kinematics(cache, rot, rel)
+    glob_rot, glob_pos = torch.split(world, [3, 1], dim=-1)
+    glob_pos = glob_pos[..., 0]
+    # Skinning transforms A_j = [G_j | t_j - G_j J_j]: x -> G_j (x - J_j) + t_j.
     offset = glob_pos - (glob_rot @ rest_joints[..., None])[..., 0]
     A = torch.cat([glob_rot, offset[..., None]], dim=-1)  # (B, J, 3, 4)
 
+    # Rest-pose geometry in component-major layout: template (3, n), shape basis (nb, 3, n).
     if points is None:
-        v = model.v_template.reshape(1, -1) + betas @ cache.shapedirs_flat[:, :nb].t()  # (B|1, N*3)
-        weights = model.weights
-        posedirs = cache.posedirs_flat if pose_blend else None
-        n = model.v_template.shape[0]
+        tmpl, sdirs, wt = cache.template_cm, cache.shapedirs_cm[:nb], cache.weights_t
+        pdirs = cache.posedirs_cm
+        corners = None
     else:
         vids, bw = points.corner_vertices(model.faces)
         flat = vids.reshape(-1)
-        n = flat.numel()
-        sd = model.shapedirs[flat, :, :nb].reshape(n * 3, nb)
-        v = model.v_template[flat].reshape(1, -1) + betas @ sd.t()
-        weights = model.weights[flat]
-        posedirs = None
-        if pose_blend and model.posedirs is not None:
-            posedirs = model.posedirs[flat].reshape(n * 3, -1)
-    if pose_blend and posedirs is not None:
-        eye = torch.eye(3, dtype=rot.dtype)
-        feat = (rot[:, 1:] - eye).reshape(B, -1)
-        v = v + feat @ posedirs.t()
-    v = v.reshape(-1, n, 3).expand(B, n, 3)
+        tmpl, sdirs, wt = cache.template_cm[:, flat], cache.shapedirs_cm[:nb, :, flat], cache.weights_t[:, flat]
+        pdirs = None if cache.posedirs_cm is None else cache.posedirs_cm[:, :, flat]
+        corners = bw.to(rot.dtype)  # (P, K)
+    n = tmpl.shape[1]
+    use_pose_blend = pose_blend and pdirs is not None
+    # A'[b, i, (j, k)] = A[b, j, i, k]: blending and applying the transforms is then one matmul
+    # against X[(j, k), n] = weights[n, j] * (v_n, 1)[k].
+    A_rows = A.permute(0, 2, 1, 3).reshape(B, 3, J * 4)
 
-    # Blend the 3x4 transforms per point, then apply: (B, n, 12).
-    T = (weights @ A.reshape(B, J, 12)).reshape(B, n, 3, 4)
-    verts = (T[..., :3] @ v[..., None])[..., 0] + T[..., 3]
-
-    if points is not None:
-        verts = (verts.reshape(B, len(points), -1, 3) * bw.to(verts.dtype)[None, :, :, None]).sum(2)
+    if betas.shape[0] == 1 and not use_pose_blend:
+        # One body shape for the whole batch (the usual case: one subject): X is shared, so the
+        # skinning is a single (B*3, 4J) @ (4J, n) product -- no per-point 3x4 transforms.
+        v = tmpl + (betas[0] @ sdirs.reshape(nb, -1)).reshape(3, n)
+        vh = torch.cat([v, v.new_ones(1, n)], dim=0)  # (4, n)
+        X = (wt[:, None, :] * vh[None]).reshape(J * 4, n)
+        if corners is not None:
+            X = (X.reshape(J * 4, len(points), -1) * corners).sum(-1)  # fold the barycentrics in
+        verts = (A_rows.reshape(B * 3, J * 4) @ X).reshape(B, 3, -1).transpose(1, 2)
+    else:
+        # Per-frame shapes or pose blend shapes: per-point transforms T (B, 3, 4, n), applied
+        # component-wise on long rows.
+        v = tmpl + (betas @ sdirs.reshape(nb, -1)).reshape(-1, 3, n)  # (B|1, 3, n)
+        if use_pose_blend:
+            feat = (rot[:, 1:] - torch.eye(3, dtype=rot.dtype)).reshape(B, -1)
+            v = v + (feat @ pdirs.reshape(pdirs.shape[0], -1)).reshape(B, 3, n)
+        T = (A.reshape(B, J, 12).transpose(1, 2).reshape(B * 12, J) @ wt).reshape(B, 3, 4, n)
+        out = T[:, :, 0] * v[:, None, 0] + T[:, :, 1] * v[:, None, 1] + T[:, :, 2] * v[:, None, 2] + T[:, :, 3]
+        if corners is not None:
+            out = (out.reshape(B, 3, len(points), -1) * corners).sum(-1)
+        verts = out.transpose(1, 2)
+    verts = verts.contiguous()
     joints = glob_pos
     if trans is not None:
         trans = trans.to(verts.dtype).reshape(-1, 1, 3)
         verts = verts + trans
         joints = joints + trans
-    transforms = torch.cat([A, A.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(B, J, 1, 4)], dim=2)
-    return LBSOutput(joints=joints, vertices=verts, joint_rotations=glob_rot, transforms=transforms)
+    return LBSOutput(joints=joints, vertices=verts, joint_rotations=glob_rot, skinning=A)

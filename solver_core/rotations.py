@@ -23,19 +23,40 @@ def skew(v: torch.Tensor) -> torch.Tensor:
     return torch.stack([o, -z, y, z, o, -x, -y, x, o], dim=-1).reshape(v.shape + (3,))
 
 
+# (3, 9) constant E with (v @ E).reshape(3, 3) == skew(v): row k holds the coefficients of v_k.
+_SKEW_BASIS = torch.tensor(
+    [[0, 0, 0, 0, 0, -1, 0, 1, 0],
+     [0, 0, 1, 0, 0, 0, -1, 0, 0],
+     [0, -1, 0, 1, 0, 0, 0, 0, 0]],
+    dtype=torch.float32,
+)
+
+
+def _skew_basis(dtype: torch.dtype, device) -> torch.Tensor:
+    if dtype == torch.float32 and device == _SKEW_BASIS.device:
+        return _SKEW_BASIS
+    return _SKEW_BASIS.to(dtype=dtype, device=device)
+
+
 def axis_angle_to_matrix(axis_angle: torch.Tensor) -> torch.Tensor:
-    """Rodrigues' formula.  axis_angle: (..., 3) radians * unit axis -> (..., 3, 3)."""
-    theta_sq = (axis_angle * axis_angle).sum(-1)
+    """Rodrigues' formula.  axis_angle: (..., 3) radians * unit axis -> (..., 3, 3).
+
+    R = cos(t) I + sin(t)/t [v]x + (1 - cos(t))/t^2 v v^T, written with few tensor ops
+    (this runs inside every solver iteration) and a Taylor branch near t = 0.
+    """
+    theta_sq = (axis_angle * axis_angle).sum(-1, keepdim=True)
     small = theta_sq < _SMALL_ANGLE_SQ
     # Evaluate the exact branch on a safe value so its gradient stays finite.
     safe_sq = torch.where(small, torch.ones_like(theta_sq), theta_sq)
     theta = torch.sqrt(safe_sq)
     a = torch.where(small, 1.0 - theta_sq / 6.0, torch.sin(theta) / theta)
     b = torch.where(small, 0.5 - theta_sq / 24.0, (1.0 - torch.cos(theta)) / safe_sq)
-    k = skew(axis_angle)
-    kk = k @ k
+    c = 1.0 - b * theta_sq  # == cos(theta) on both branches
+    shape = axis_angle.shape[:-1] + (3, 3)
+    outer = (axis_angle[..., :, None] * axis_angle[..., None, :]) * b[..., None]
+    cross = ((a * axis_angle) @ _skew_basis(axis_angle.dtype, axis_angle.device)).reshape(shape)
     eye = torch.eye(3, dtype=axis_angle.dtype, device=axis_angle.device)
-    return eye + a[..., None, None] * k + b[..., None, None] * kk
+    return outer + cross + c[..., None] * eye
 
 
 def matrix_to_quaternion(matrix: torch.Tensor) -> torch.Tensor:
