@@ -137,7 +137,10 @@ class NatNetSource(Node):
         self.last_frame_time = time.monotonic()
         self.publish("markers", self.to_marker_frame(frame))
         self.published += 1
-        return not (c.max_frames and self.published >= c.max_frames)
+        if c.max_frames and self.published >= c.max_frames:
+            self.end_stream("markers")  # a bounded capture ends like a replay: downstream sees EOS
+            return False
+        return True
 
     def to_marker_frame(self, frame) -> MarkerFrame:
         positions, _ids, labelled = frame.point_cloud()

@@ -328,3 +328,104 @@ def test_multicast_on_loopback():
         if not frames:
             pytest.skip("multicast datagrams are not looped back on this host")
         assert [f.frame_number for f in frames] == [1000 + i for i in range(len(frames))]
+
+
+# --------------------------------------------------------------------------- live graph end to end
+
+
+def _markers_with_ghosts(i: int, rng: np.random.Generator, rate_hz: float) -> nn.FrameOfData:
+    """Six markers circling (shuffled each frame, unlabeled) plus one-frame ghosts."""
+    t = i / rate_hz
+    k = np.arange(6)
+    real = np.stack([0.3 * np.cos(2 * t + k), 1.0 + 0.1 * k, 0.3 * np.sin(2 * t + k)], 1)
+    ghosts = rng.uniform(-1, 1, (int(rng.integers(0, 3)), 3)) + [0, 1, 0]
+    points = np.concatenate([real, ghosts])[rng.permutation(6 + len(ghosts))].astype(np.float32)
+    return nn.FrameOfData(frame_number=i, labeled_markers=nn.labeled_marker_records(points, ids=0),
+                          timestamp=5.0 + t)
+
+
+def test_live_graph_natnet_source_tracker_recorder(tmp_path):
+    """Real sockets end to end: NatNet UDP server -> natnet_source -> tracker -> recorder (MCAP)."""
+    import json
+    import signal
+    import subprocess
+    import sys
+
+    pytest.importorskip("uuomocap.nodes.base")
+    from uuomocap.nodes.base import discover_plugins
+    from uuomocap.protocol.recording import iter_recording, read_markers_mcap
+    from uuomocap.protocol.transport import BrokerThread, Endpoints
+
+    missing = {"natnet_source", "tracker", "recorder"} - set(discover_plugins())
+    if missing:
+        pytest.skip(f"node plugins not installed: {sorted(missing)} (pip install -e .)")
+    rate, n_frames = 120.0, 240
+    endpoints = Endpoints.ipc(tmp_path)
+    broker = BrokerThread(endpoints)
+    out = tmp_path / "live.mcap"
+    procs: dict[str, subprocess.Popen] = {}
+    errors: list = []
+    done = threading.Event()
+
+    def motive_like(server):
+        """Streams continuously from the first client on, like Motive, until the test is done."""
+        try:
+            rng = np.random.default_rng(3)
+            deadline = time.monotonic() + 60
+            while not server.clients and not done.is_set() and time.monotonic() < deadline:
+                server.serve_commands(0.05)
+            start, i = time.monotonic(), 0
+            while not done.is_set() and time.monotonic() < deadline:
+                server.serve_commands(0.0)
+                server.send_frame(_markers_with_ghosts(i, rng, rate))
+                i += 1
+                time.sleep(max(0.0, start + i / rate - time.monotonic()))
+        except Exception as exc:
+            errors.append(exc)
+
+    with nn.NatNetServer(nn.ServerInfo(natnet_version=(4, 1, 0, 0)), command_port=0) as server:
+        streamer = threading.Thread(target=motive_like, args=(server,), daemon=True)
+        streamer.start()
+
+        def spawn(plugin, name, params, expect=None):
+            cmd = [sys.executable, "-m", "uuomocap.nodes.run", plugin, "--name", name,
+                   "--endpoints", f"{endpoints.frontend},{endpoints.backend}", "--params", json.dumps(params),
+                   "--expect", json.dumps(expect or {}), "--ready-timeout", "20"]
+            procs[name] = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=open(tmp_path / f"{name}.log", "w"))
+
+        try:
+            spawn("recorder", "rec", {"out": str(out), "topics": ["markers/raw", "markers/tracked"]})
+            spawn("tracker", "trk", {}, {"markers/tracked": ["rec"]})
+            spawn("natnet_source", "src", {"server": "127.0.0.1", "command_port": server.address[1],
+                                           "max_frames": n_frames}, {"markers/raw": ["trk", "rec"]})
+            assert procs["src"].wait(timeout=40) == 0, (tmp_path / "src.log").read_text()
+            done.set()
+            streamer.join(timeout=5)
+            time.sleep(1.0)  # let the tracker and recorder drain
+            for name in ("trk", "rec"):
+                procs[name].send_signal(signal.SIGINT)
+            for name in ("trk", "rec"):
+                assert procs[name].wait(timeout=20) == 0, (tmp_path / f"{name}.log").read_text()
+        finally:
+            done.set()
+            for p in procs.values():
+                if p.poll() is None:
+                    p.kill()
+                    p.wait()
+            broker.stop()
+    assert not errors
+    counts: dict[str, int] = {}
+    for rec in iter_recording(out):
+        counts[rec.topic] = counts.get(rec.topic, 0) + 1
+    assert counts.get("markers/raw") == n_frames + 1  # + EndOfStream
+    assert counts.get("markers/tracked") == n_frames + 1
+    tracked = read_markers_mcap(out, topic="markers/tracked")
+    assert tracked.positions.shape[0] == n_frames
+    # Six stable tracks, each visible from its birth (3rd frame at 120 Hz) to the end; ghosts got no
+    # id.  (Columns never visible are the empty slots' id -1.)
+    seen = tracked.visible.any(0)
+    assert seen.sum() == 6, tracked.labels
+    assert tracked.visible[2:, seen].all() and not tracked.visible[:2].any()
+    assert tracked.up_axis == "+y" and tracked.rate_hz == pytest.approx(rate, rel=1e-3)
+    # Consecutive Motive frames, stamps from Motive's clock: 1/120 s apart.
+    assert np.diff(tracked.stamps_ns) == pytest.approx(1e9 / rate, abs=2)
