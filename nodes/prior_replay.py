@@ -19,47 +19,9 @@ import numpy as np
 import yaml
 
 from uuomocap.protocol.messages import BodyPrior
+from uuomocap.protocol.prior_file import read_prior_npz
 
 from .base import LATEST, Node, Port
-
-PRIOR_KEYS = ("stamps_ns", "global_orient", "body_pose", "betas")
-
-
-@dataclass(frozen=True)
-class PriorReplayConfig:
-    file: str  # prior.npz
-    clock_offset_s: float | None = None  # None: session.yaml next to the file, else 0
-    latency_s: float = 0.0
-    lockstep: bool = False
-    window: int = 16
-    ack_from: list[str] = field(default_factory=list)
-    ack_timeout_s: float = 30.0
-
-    def __post_init__(self):
-        if not Path(self.file).is_file():
-            raise ValueError(f"parameter 'file': no such prior file {self.file!r}")
-        if self.latency_s < 0 or self.window < 1:
-            raise ValueError("latency_s >= 0 and window >= 1 are required")
-
-
-def load_prior(path: str | Path) -> dict[str, np.ndarray]:
-    """prior.npz (session layout, see the brief) with shapes checked; raises ValueError naming the key."""
-    with np.load(path, allow_pickle=False) as z:
-        d = {k: z[k] for k in z.files}
-    missing = [k for k in PRIOR_KEYS if k not in d]
-    if missing:
-        raise ValueError(f"{path}: prior lacks {missing}")
-    F = len(d["stamps_ns"])
-    want = {"global_orient": (F, 3), "body_pose": (F, 23, 3)}
-    for k, shape in want.items():
-        if d[k].shape != shape:
-            raise ValueError(f"{path}: {k} has shape {d[k].shape}, expected {shape}")
-    if d["betas"].ndim != 2 or len(d["betas"]) != F:
-        raise ValueError(f"{path}: betas must be (F, B), got {d['betas'].shape}")
-    d.setdefault("valid", np.ones(F, bool))
-    d.setdefault("confidence", np.ones(F, np.float32))
-    return d
-
 
 def session_clock_offset(prior_path: Path) -> float:
     session_yaml = prior_path.parent / "session.yaml"
@@ -76,11 +38,11 @@ class PriorReplay(Node):
 
     def setup(self) -> None:
         c = self.config
-        self.d = load_prior(c.file)
+        self.d = read_prior_npz(c.file)
         offset = c.clock_offset_s if c.clock_offset_s is not None else session_clock_offset(Path(c.file))
         self.stamps = self.d["stamps_ns"].astype(np.int64) + int(round(offset * 1e9))
-        self.camera_frame = bool(self.d.get("camera_frame", np.array(True)))
-        self.body_model = str(self.d.get("body_model", np.array("")))
+        self.camera_frame = bool(self.d["camera_frame"])
+        self.body_model = str(self.d["body_model"])
         self.i, self.clock_ns, self.last_seq, self.markers_ended = 0, None, -1, False
         if c.ack_from:
             self.track_acks(self.ack_sources(c))

@@ -734,6 +734,27 @@ def find_running_graphs() -> list[dict]:
     return sorted(out, key=lambda i: -i["_mtime"])
 
 
+def connect_info(graph: str | None = None, endpoints: str | None = None) -> tuple[Endpoints, dict | None]:
+    """Endpoints of the graph to talk to: explicit endpoints, a graph name / runtime dir,
+    $UUOMOCAP_GRAPH, or the newest running graph. Raises LaunchError when none is found."""
+    if endpoints:
+        try:
+            return Endpoints.parse(endpoints), None
+        except ValueError as exc:
+            raise LaunchError(str(exc)) from None
+    graph = graph or os.environ.get("UUOMOCAP_GRAPH")
+    running = find_running_graphs()
+    if graph:
+        for info in running:
+            if graph in (info["name"], info["runtime_dir"], Path(info["runtime_dir"]).name):
+                return Endpoints(**info["endpoints"]), info
+        names = ", ".join(f"{i['name']} ({Path(i['runtime_dir']).name})" for i in running) or "none"
+        raise LaunchError(f"no running graph named {graph!r} (running: {names})")
+    if not running:
+        raise LaunchError("no running graph found: start one with `uuomocap launch FILE`, or pass --endpoints FRONTEND,BACKEND")
+    return Endpoints(**running[0]["endpoints"]), running[0]
+
+
 def main(argv: list[str] | None = None) -> int:
     """``python -m uuomocap.launcher FILE [key:=value ...]`` (same as ``uuomocap launch``)."""
     from uuomocap.cli import main as cli_main
