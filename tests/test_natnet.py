@@ -345,25 +345,20 @@ def _markers_with_ghosts(i: int, rng: np.random.Generator, rate_hz: float) -> nn
 
 
 def test_live_graph_natnet_source_tracker_recorder(tmp_path):
-    """Real sockets end to end: NatNet UDP server -> natnet_source -> tracker -> recorder (MCAP)."""
-    import json
-    import signal
+    """Real sockets end to end, started by the launcher from launch/live_natnet.yaml:
+    NatNet UDP server -> natnet_source -> tracker -> recorder (MCAP)."""
     import subprocess
     import sys
 
     pytest.importorskip("uuomocap.nodes.base")
     from uuomocap.nodes.base import discover_plugins
     from uuomocap.protocol.recording import iter_recording, read_markers_mcap
-    from uuomocap.protocol.transport import BrokerThread, Endpoints
 
     missing = {"natnet_source", "tracker", "recorder"} - set(discover_plugins())
     if missing:
         pytest.skip(f"node plugins not installed: {sorted(missing)} (pip install -e .)")
     rate, n_frames = 120.0, 240
-    endpoints = Endpoints.ipc(tmp_path)
-    broker = BrokerThread(endpoints)
     out = tmp_path / "live.mcap"
-    procs: dict[str, subprocess.Popen] = {}
     errors: list = []
     done = threading.Event()
 
@@ -386,33 +381,15 @@ def test_live_graph_natnet_source_tracker_recorder(tmp_path):
     with nn.NatNetServer(nn.ServerInfo(natnet_version=(4, 1, 0, 0)), command_port=0) as server:
         streamer = threading.Thread(target=motive_like, args=(server,), daemon=True)
         streamer.start()
-
-        def spawn(plugin, name, params, expect=None):
-            cmd = [sys.executable, "-m", "uuomocap.nodes.run", plugin, "--name", name,
-                   "--endpoints", f"{endpoints.frontend},{endpoints.backend}", "--params", json.dumps(params),
-                   "--expect", json.dumps(expect or {}), "--ready-timeout", "20"]
-            procs[name] = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=open(tmp_path / f"{name}.log", "w"))
-
         try:
-            spawn("recorder", "rec", {"out": str(out), "topics": ["markers/raw", "markers/tracked"]})
-            spawn("tracker", "trk", {}, {"markers/tracked": ["rec"]})
-            spawn("natnet_source", "src", {"server": "127.0.0.1", "command_port": server.address[1],
-                                           "max_frames": n_frames}, {"markers/raw": ["trk", "rec"]})
-            assert procs["src"].wait(timeout=40) == 0, (tmp_path / "src.log").read_text()
-            done.set()
-            streamer.join(timeout=5)
-            time.sleep(1.0)  # let the tracker and recorder drain
-            for name in ("trk", "rec"):
-                procs[name].send_signal(signal.SIGINT)
-            for name in ("trk", "rec"):
-                assert procs[name].wait(timeout=20) == 0, (tmp_path / f"{name}.log").read_text()
+            cmd = [sys.executable, "-m", "uuomocap.cli", "launch", "--log-dir", str(tmp_path), "--timeout", "60",
+                   "live_natnet", f"command_port:={server.address[1]}", f"max_frames:={n_frames}", f"out:={out}"]
+            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=90)
+            logs = "".join(f"--- {p.name}\n{p.read_text()}" for p in sorted(tmp_path.glob("*.log")))
+            assert proc.returncode == 0, proc.stderr + logs
         finally:
             done.set()
-            for p in procs.values():
-                if p.poll() is None:
-                    p.kill()
-                    p.wait()
-            broker.stop()
+            streamer.join(timeout=5)
     assert not errors
     counts: dict[str, int] = {}
     for rec in iter_recording(out):
