@@ -221,56 +221,92 @@ def fit_landmarks(model, world: np.ndarray, visibility: np.ndarray, valid: np.nd
         return LandmarkFit(out_orient, out_pose, betas, out_joints, out_res, valid.copy())
 
     w_sub, v_sub = world[idx], visibility[idx]
-    joint_ids, targets_np, weights_np = _landmark_targets(w_sub, v_sub)
+    root0 = rotations.matrix_to_axis_angle(torch.tensor(root_from_landmarks(w_sub), dtype=torch.float32))
+    body0 = torch.zeros(len(idx), 23, 3)
+    sol = _fit_frames(model, betas, w_sub, v_sub, np.diff(idx) == 1, root0, body0, config, config.iterations,
+                      progress=progress)
+    out_orient[idx] = sol.root
+    out_pose[idx] = sol.body
+    out_joints[idx] = sol.joints_rel
+    out_res[idx] = sol.residual
+    return LandmarkFit(out_orient, out_pose, betas, out_joints, out_res, valid.copy())
+
+
+@dataclass(frozen=True)
+class _FrameSolution:
+    root: np.ndarray  # (n, 3)
+    body: np.ndarray  # (n, 23, 3)
+    joints_rel: np.ndarray  # (n, 24, 3) pelvis-centred
+    rotations: np.ndarray  # (n, 24, 3, 3) global joint rotations
+    residual: np.ndarray  # (n,) metres
+
+
+def _fit_frames(model, betas: np.ndarray, world: np.ndarray, visibility: np.ndarray, consecutive: np.ndarray,
+                root0: torch.Tensor, body0: torch.Tensor, config: LandmarkFitConfig, iterations: int,
+                context: tuple[np.ndarray, np.ndarray] | None = None, progress=None) -> _FrameSolution:
+    """Jointly fit n frames (all with landmarks).
+
+    world (n, 33, 3), visibility (n, 33); consecutive (n-1,) bool: frame i+1 directly follows i
+    (temporal terms only there).  root0 (n, 3), body0 (n, 23, 3) starting values.
+    context: (joints_rel (2, 24, 3), rotations (1, 24, 3, 3)) of the two frames just before
+    (streaming): they enter the temporal terms as constants.
+    """
+    n = world.shape[0]
     dt = torch.float32  # the body model's dtype
+    joint_ids, targets_np, weights_np = _landmark_targets(world, visibility)
     targets = torch.tensor(targets_np, dtype=dt)
     weights = torch.tensor(weights_np, dtype=dt)
     joint_ids_t = torch.tensor(joint_ids)
-    # Temporal terms only between frames that are neighbours in time.
-    consecutive = torch.tensor(np.diff(idx) == 1)
-    accel_ok = consecutive[:-1] & consecutive[1:] if len(idx) > 2 else torch.zeros(0, dtype=torch.bool)
-
-    lm = torch.tensor(w_sub, dtype=dt)
-    vis = torch.tensor(v_sub, dtype=dt)
+    lm = torch.tensor(world, dtype=dt)
+    vis = torch.tensor(visibility, dtype=dt)
     head_dir = _unit(lm[:, NOSE] - (lm[:, L_EAR] + lm[:, R_EAR]) / 2)
     head_w = torch.minimum(vis[:, NOSE], torch.minimum(vis[:, L_EAR], vis[:, R_EAR]))
-    foot_dirs = [(7, 10, _unit(lm[:, L_FOOT_INDEX] - lm[:, L_HEEL]), torch.minimum(vis[:, L_FOOT_INDEX], vis[:, L_HEEL])),
-                 (8, 11, _unit(lm[:, R_FOOT_INDEX] - lm[:, R_HEEL]), torch.minimum(vis[:, R_FOOT_INDEX], vis[:, R_HEEL]))]
-    hand_dirs = [(20, 22, _unit((lm[:, L_INDEX] + lm[:, L_PINKY]) / 2 - lm[:, L_WRIST]),
-                  torch.minimum(vis[:, L_INDEX], vis[:, L_WRIST])),
-                 (21, 23, _unit((lm[:, R_INDEX] + lm[:, R_PINKY]) / 2 - lm[:, R_WRIST]),
-                  torch.minimum(vis[:, R_INDEX], vis[:, R_WRIST]))]
+    limb_dirs = [
+        (7, 10, _unit(lm[:, L_FOOT_INDEX] - lm[:, L_HEEL]), torch.minimum(vis[:, L_FOOT_INDEX], vis[:, L_HEEL])),
+        (8, 11, _unit(lm[:, R_FOOT_INDEX] - lm[:, R_HEEL]), torch.minimum(vis[:, R_FOOT_INDEX], vis[:, R_HEEL])),
+        (20, 22, _unit((lm[:, L_INDEX] + lm[:, L_PINKY]) / 2 - lm[:, L_WRIST]),
+         torch.minimum(vis[:, L_INDEX], vis[:, L_WRIST])),
+        (21, 23, _unit((lm[:, R_INDEX] + lm[:, R_PINKY]) / 2 - lm[:, R_WRIST]),
+         torch.minimum(vis[:, R_INDEX], vis[:, R_WRIST])),
+    ]
+    link = np.asarray(consecutive, bool)
+    ctx_joints = ctx_rots = None
+    if context is not None:
+        ctx_joints = torch.tensor(context[0], dtype=dt)
+        ctx_rots = torch.tensor(context[1], dtype=dt)
+        link = np.concatenate([[True, True], link])  # context frames directly precede frame 0
+    vel_ok = torch.tensor(link[-(n - 1 + (1 if context is not None else 0)):] if len(link) else link)
+    accel_ok = torch.tensor(link[:-1] & link[1:]) if len(link) > 1 else torch.zeros(0, dtype=torch.bool)
 
-    root0 = rotations.matrix_to_axis_angle(torch.tensor(root_from_landmarks(w_sub), dtype=dt))
-    root = root0.clone().requires_grad_(True)
-    body = torch.zeros(len(idx), 23, 3, dtype=dt, requires_grad=True)
-    trans = torch.zeros(len(idx), 3, dtype=dt, requires_grad=True)
+    root = root0.detach().clone().to(dt).requires_grad_(True)
+    body = body0.detach().clone().to(dt).requires_grad_(True)
+    trans = torch.zeros(n, 3, dtype=dt, requires_grad=True)
     betas_t = torch.tensor(betas, dtype=dt)[None]
-    forward_axes = torch.tensor([0.0, 0.0, 1.0], dtype=dt)
+    forward_axis = torch.tensor([0.0, 0.0, 1.0], dtype=dt)
 
     def energy() -> torch.Tensor:
         pose = torch.cat([root[:, None], body], dim=1)
         joints, rots = _joints(model, betas_t, pose)
-        joints = joints + trans[:, None]
-        diff = joints[:, joint_ids_t] - targets
+        diff = joints[:, joint_ids_t] + trans[:, None] - targets
         data = (weights * (diff ** 2).sum(-1)).sum() / weights.sum().clamp_min(1e-9)
-        head_fwd = rots[:, 15] @ forward_axes
-        direction = (head_w * (1 - (head_fwd * head_dir).sum(-1))).mean()
-        for a, b, target_dir, w in foot_dirs + hand_dirs:
+        direction = (head_w * (1 - ((rots[:, 15] @ forward_axis) * head_dir).sum(-1))).mean()
+        for a, b, target_dir, w in limb_dirs:
             direction = direction + (w * (1 - (_unit(joints[:, b] - joints[:, a]) * target_dir).sum(-1))).mean()
         loss = data + config.direction * direction + config.pose_prior * (body ** 2).sum(-1).mean() * 23
-        if len(idx) > 2 and bool(accel_ok.any()):
-            rel = joints - joints[:, :1]
+        rel = joints - joints[:, :1]
+        if ctx_joints is not None:
+            rel = torch.cat([ctx_joints, rel])
+            rots = torch.cat([ctx_rots, rots])
+        if rel.shape[0] > 2 and bool(accel_ok.any()):
             accel = rel[2:] - 2 * rel[1:-1] + rel[:-2]
-            loss = loss + config.smooth_accel * ((accel ** 2).sum(-1).mean(-1) * accel_ok).sum() / len(idx)
-        if len(idx) > 1 and bool(consecutive.any()):
+            loss = loss + config.smooth_accel * ((accel ** 2).sum(-1).mean(-1) * accel_ok).sum() / n
+        if rots.shape[0] > 1 and bool(vel_ok.any()):
             vel = rots[1:] - rots[:-1]
-            loss = loss + config.smooth_rot * ((vel ** 2).sum((-1, -2)).mean(-1) * consecutive).sum() / len(idx)
+            loss = loss + config.smooth_rot * ((vel ** 2).sum((-1, -2)).mean(-1) * vel_ok).sum() / n
         return loss
 
-    opt = torch.optim.LBFGS([root, body, trans], lr=config.lr, max_iter=config.iterations,
-                            history_size=20, line_search_fn="strong_wolfe", tolerance_grad=1e-9,
-                            tolerance_change=1e-12)
+    opt = torch.optim.LBFGS([root, body, trans], lr=config.lr, max_iter=iterations, history_size=20,
+                            line_search_fn="strong_wolfe", tolerance_grad=1e-9, tolerance_change=1e-12)
     step = [0]
 
     def closure():
@@ -283,14 +319,79 @@ def fit_landmarks(model, world: np.ndarray, visibility: np.ndarray, valid: np.nd
         return loss
 
     opt.step(closure)
-
     with torch.no_grad():
         pose = torch.cat([root[:, None], body], dim=1)
-        joints, _ = _joints(model, betas_t, pose)
+        joints, rots = _joints(model, betas_t, pose)
         diff = joints[:, joint_ids_t] + trans[:, None] - targets
         res = ((weights * (diff ** 2).sum(-1)).sum(-1) / weights.sum(-1).clamp_min(1e-9)).sqrt()
-    out_orient[idx] = root.detach().numpy()
-    out_pose[idx] = body.detach().numpy()
-    out_joints[idx] = (joints - joints[:, :1]).numpy()
-    out_res[idx] = res.numpy()
-    return LandmarkFit(out_orient, out_pose, betas, out_joints, out_res, valid.copy())
+    return _FrameSolution(root.detach().double().numpy(), body.detach().double().numpy(),
+                          (joints - joints[:, :1]).double().numpy(), rots.double().numpy(), res.double().numpy())
+
+
+class StreamingLandmarkFitter:
+    """Landmark fit for live use (the ``video_prior`` node), in small batches of frames.
+
+    One L-BFGS per frame costs ~60 ms here (torch overhead of tiny problems), a batch
+    of 15 frames ~150 ms in total, so frames are fitted ``batch_frames`` at a time
+    (latency: batch_frames / rate, 0.5 s at 30 Hz), warm-started from the previous
+    batch, whose last two frames enter the temporal terms as constants (no seam).
+    Shape: refitted from all bone lengths seen so far at every batch until
+    ``shape_frames`` frames were seen, then locked.  A frame without a person
+    flushes the batch and breaks the temporal link.
+    """
+
+    def __init__(self, model, config: LandmarkFitConfig = LandmarkFitConfig(), batch_frames: int = 15,
+                 iterations: int = 30, shape_frames: int = 60):
+        if batch_frames < 1 or iterations < 1:
+            raise ValueError("batch_frames and iterations must be >= 1")
+        self.model, self.config = model, config
+        self.batch_frames, self.iterations, self.shape_frames = batch_frames, iterations, shape_frames
+        self.betas = np.zeros(min(config.num_betas, model.num_betas))
+        self.shape_locked = False
+        self._shape_world: list[np.ndarray] = []
+        self._shape_vis: list[np.ndarray] = []
+        self._pending: list[tuple[object, np.ndarray, np.ndarray]] = []
+        self._last_body: np.ndarray | None = None
+        self._context: tuple[np.ndarray, np.ndarray] | None = None
+
+    def push(self, key, world: np.ndarray | None, visibility: np.ndarray | None) -> list[tuple[object, tuple | None]]:
+        """Add one frame (``world`` (33, 3), ``visibility`` (33,), or None when no person).
+
+        Returns the frames finished by this call, in order: (key, (global_orient (3,),
+        body_pose (23, 3), betas (nb,), residual metres) or None).
+        """
+        if world is None:
+            done = self.flush()
+            self._context = None
+            return done + [(key, None)]
+        self._pending.append((key, np.asarray(world, np.float64), np.asarray(visibility, np.float64)[:33]))
+        return self.flush() if len(self._pending) >= self.batch_frames else []
+
+    def flush(self) -> list[tuple[object, tuple | None]]:
+        """Fit and return every pending frame now."""
+        if not self._pending:
+            return []
+        keys = [p[0] for p in self._pending]
+        world = np.stack([p[1] for p in self._pending])
+        vis = np.stack([p[2] for p in self._pending])
+        self._pending = []
+        if not self.shape_locked:
+            self._shape_world.extend(world)
+            self._shape_vis.extend(vis)
+            seen = len(self._shape_world)
+            self.betas = fit_shape(self.model, np.stack(self._shape_world), np.stack(self._shape_vis),
+                                   np.ones(seen, bool), self.config)
+            self._context = None  # joints of the previous shape would fight the new one
+            if seen >= self.shape_frames:
+                self.shape_locked = True
+                self._shape_world, self._shape_vis = [], []
+        n = len(keys)
+        root0 = rotations.matrix_to_axis_angle(torch.tensor(root_from_landmarks(world), dtype=torch.float32))
+        body0 = (torch.zeros(n, 23, 3) if self._last_body is None
+                 else torch.tensor(np.repeat(self._last_body[None], n, 0), dtype=torch.float32))
+        sol = _fit_frames(self.model, self.betas, world, vis, np.ones(n - 1, bool), root0, body0, self.config,
+                          self.iterations, context=self._context)
+        self._last_body = sol.body[-1]
+        joints = sol.joints_rel if self._context is None or n >= 2 else np.concatenate([self._context[0], sol.joints_rel])
+        self._context = (joints[-2:], sol.rotations[-1:]) if len(joints) >= 2 else None
+        return [(k, (sol.root[i], sol.body[i], self.betas.copy(), float(sol.residual[i]))) for i, k in enumerate(keys)]

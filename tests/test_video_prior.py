@@ -340,3 +340,44 @@ def test_prior_file_validation(tmp_path):
         write_prior_npz(tmp_path / "bad.npz", {**arrays, "body_pose": np.zeros((n, 24, 3))})
     with pytest.raises(PriorFileError, match="global_orient holds NaN"):
         write_prior_npz(tmp_path / "bad.npz", {**arrays, "global_orient": np.full((n, 3), np.nan)})
+
+
+# ----------------------------------------------------------------------------- streaming node
+def test_video_prior_node_publishes_body_priors(pose_models, tmp_path):
+    """video_prior (BlazePose + batched streaming fit) -> recorder, started by the launcher."""
+    _need_video()
+    import subprocess
+    import sys
+
+    from uuomocap.nodes.base import discover_plugins
+    from uuomocap.protocol.recording import iter_recording
+
+    if {"video_prior", "recorder"} - set(discover_plugins()):
+        pytest.skip("node plugins not installed (pip install -e .)")
+    launch = tmp_path / "video_prior_test.yaml"
+    launch.write_text(
+        "description: video prior -> recorder\nargs:\n  video: {}\n  out: {}\nnodes:\n"
+        "  - name: video_prior\n    plugin: video_prior\n"
+        "    params: {video: $(arg video), speed: 0, max_frames: 20, batch_frames: 8, clock_offset_s: 0.5}\n"
+        "    on_exit: shutdown\n"
+        "  - name: recorder\n    plugin: recorder\n    params: {out: $(arg out), topics: [body/prior]}\n")
+    out = tmp_path / "prior.mcap"
+    cmd = [sys.executable, "-m", "uuomocap.cli", "launch", "--log-dir", str(tmp_path), "--timeout", "90",
+           str(launch), f"video:={VIDEO}", f"out:={out}"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    logs = "".join(f"--- {p.name}\n{p.read_text()}" for p in sorted(tmp_path.glob("*.log")))
+    assert proc.returncode == 0, proc.stderr + logs
+    msgs = [r.decode().message for r in iter_recording(out)]
+    priors = [m for m in msgs if type(m).__name__ == "BodyPrior"]
+    assert [p.frame_index for p in priors] == list(range(20))
+    assert all(p.valid and p.camera_frame and p.body_model == "open-low" for p in priors)
+    assert priors[3].video_stamp_ns == 100_000_000 and priors[3].stamp_ns == 600_000_000
+    assert priors[0].keypoints3d.shape == (33, 3) and priors[0].body_pose.shape == (23, 3)
+    up = np.stack([bp_up(p.global_orient) for p in priors])
+    assert np.median(up[:, 1]) < -0.8  # upright runner: body up is image up (-y)
+
+
+def bp_up(axis_angle: np.ndarray) -> np.ndarray:
+    import cv2
+
+    return cv2.Rodrigues(np.asarray(axis_angle, np.float64))[0][:, 1]

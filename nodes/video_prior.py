@@ -1,0 +1,144 @@
+"""video_prior: run the video body estimator on a video file or live camera, publish BodyPrior.
+
+Estimators: 'blazepose' (default: BlazePose GHUM 3D + a body-model fit to its 3D
+landmarks, in batches of ``batch_frames`` -> latency batch_frames / rate) or
+'onnx-hmr:MODEL.onnx' (a user's HMR-class network, one message per frame).
+Stamps: capture stamp = video stamp + clock offset (``clock_offset_s``, else the
+session.yaml next to the video, else 0).  Files play at ``speed`` x real time (0: as
+fast as possible) or in ``lockstep`` on the credits of ``ack_from``; cameras run live.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from uuomocap.protocol.messages import BodyPrior
+
+from .base import Node, Pacer
+
+
+@dataclass(frozen=True)
+class VideoPriorConfig:
+    video: str  # video file, or a camera index such as "0"
+    estimator: str = "blazepose"  # or "onnx-hmr:MODEL.onnx"
+    body_model: str = "open-low"
+    clock_offset_s: float | None = None
+    rate_hz: float | None = None  # override the container's frame rate
+    speed: float = 1.0
+    lockstep: bool = False
+    window: int = 16
+    ack_from: list[str] = field(default_factory=list)
+    ack_timeout_s: float = 30.0
+    batch_frames: int = 15
+    max_frames: int = 0  # 0 = all
+
+    def __post_init__(self):
+        if not self.video.isdigit() and not Path(self.video).is_file():
+            raise ValueError(f"parameter 'video': no such video file {self.video!r}")
+        if not (self.estimator == "blazepose" or self.estimator.startswith("onnx-hmr:")):
+            raise ValueError(f"parameter 'estimator': {self.estimator!r} is not 'blazepose' or 'onnx-hmr:MODEL'")
+        if self.speed < 0 or self.window < 1 or self.batch_frames < 1 or self.max_frames < 0:
+            raise ValueError("speed >= 0, window >= 1, batch_frames >= 1 and max_frames >= 0 are required")
+        if self.lockstep and not self.ack_from:
+            raise ValueError("lockstep needs ack_from: the nodes whose acknowledgements pace the video")
+
+
+class VideoPrior(Node):
+    Config = VideoPriorConfig
+    PUBLISHES = {"prior": "body/prior"}
+
+    def setup(self) -> None:
+        from uuomocap.model_fetch import ensure_pose_models
+        from uuomocap.protocol.video import session_video_settings, video_source
+        from uuomocap.solver_core.pose_estimators import BlazePoseEstimator, OnnxHmrEstimator
+
+        c = self.config
+        self.video = video_source(c.video, rate_hz=c.rate_hz)
+        offset = c.clock_offset_s
+        session_yaml = Path(c.video).parent / "session.yaml"
+        if offset is None:
+            offset = session_video_settings(session_yaml)["clock_offset_s"] if session_yaml.is_file() else 0.0
+        self.offset_ns = int(round(offset * 1e9))
+        models = ensure_pose_models(log=self.log.info)
+        tracker = BlazePoseEstimator(models.detector, models.landmark)
+        self.fitter = None
+        if c.estimator.startswith("onnx-hmr:"):
+            self.estimator = OnnxHmrEstimator(c.estimator.split(":", 1)[1], tracker)
+            self.body_model = "smpl"
+        else:
+            import torch
+
+            from uuomocap.solver_core.body_model import load_body_model
+            from uuomocap.solver_core.landmark_fit import StreamingLandmarkFitter
+
+            torch.set_num_threads(1)
+            self.estimator = tracker
+            self.fitter = StreamingLandmarkFitter(load_body_model(c.body_model), batch_frames=c.batch_frames)
+            self.body_model = c.body_model
+        self.pacer = Pacer(c.speed) if c.speed > 0 and not (self.video.live or c.lockstep) else None
+        self.frames: dict[int, tuple[int, object]] = {}  # index -> (video stamp, estimator result)
+        self.last = (np.zeros(3), np.zeros((23, 3)), np.zeros(10))
+        self.count_frames, self.last_seq, self.done = 0, -1, False
+        if c.ack_from:
+            self.track_acks(self.ack_sources(c))
+        self.log.info("video prior: %s at %.3f Hz, estimator %s, clock offset %.3f s", self.video.name,
+                      self.video.rate_hz, c.estimator, offset)
+
+    def step(self) -> bool:
+        c = self.config
+        frame = None if (c.max_frames and self.count_frames >= c.max_frames) else self.video.read()
+        if frame is None:
+            if self.fitter is not None:
+                self._emit(self.fitter.flush())
+            self.end_stream("prior")
+            self.log.info("video prior finished: %d frames", self.count_frames)
+            return False
+        self.count_frames += 1
+        if self.pacer is not None and not self.sleep_until(self.pacer.due_ns(frame.stamp_ns)):
+            return False
+        result = self.estimator.process(frame.rgb())
+        self.count("frames")
+        self.count("person" if result is not None else "no_person")
+        self.frames[frame.index] = (frame.stamp_ns, result)
+        if self.fitter is None:
+            self._emit([(frame.index, None if result is None else
+                         (result.global_orient, result.body_pose, result.betas, 0.0))])
+        else:
+            self._emit(self.fitter.push(frame.index, None if result is None else result.world,
+                                        None if result is None else result.visibility))
+        return not self.stopping
+
+    def _emit(self, finished) -> None:
+        from uuomocap.solver_core.video_prior import matrices_to_axis_angle, rotations_to_matrices
+
+        c = self.config
+        for index, fit in finished:
+            stamp, result = self.frames.pop(index)
+            if fit is not None:
+                orient, pose, betas, _residual = fit
+                if self.fitter is None:  # HMR output: any rotation layout -> axis-angle
+                    orient = matrices_to_axis_angle(rotations_to_matrices(np.asarray(orient).reshape(1, -1), 1, "global_orient"))[0, 0]
+                    pose = matrices_to_axis_angle(rotations_to_matrices(np.asarray(pose).reshape(1, -1), 23, "body_pose"))[0]
+                self.last = (np.asarray(orient), np.asarray(pose).reshape(23, 3), np.asarray(betas).reshape(-1))
+            score = 0.0 if result is None else float(getattr(result, "pose_score", getattr(result, "score", 1.0)))
+            world = getattr(result, "world", None)
+            msg = BodyPrior(
+                stamp_ns=stamp + self.offset_ns, video_stamp_ns=stamp, frame_index=index,
+                global_orient=self.last[0].astype(np.float32), body_pose=self.last[1].astype(np.float32),
+                betas=self.last[2].astype(np.float32),
+                keypoints3d=None if world is None else np.asarray(world, np.float32),
+                camera_frame=True, confidence=score if fit is not None else 0.0, valid=fit is not None,
+                body_model=self.body_model)
+            if c.lockstep:
+                self.wait_for_credit("prior", self.last_seq + 1, msg.stamp_ns, c.ack_from, c.window, c.ack_timeout_s)
+            if self.stopping:
+                return
+            self.last_seq = self.publish("prior", msg)
+
+    def teardown(self) -> None:
+        video = getattr(self, "video", None)
+        if video is not None:
+            video.close()
