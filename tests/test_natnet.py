@@ -406,3 +406,44 @@ def test_live_graph_natnet_source_tracker_recorder(tmp_path):
     assert tracked.up_axis == "+y" and tracked.rate_hz == pytest.approx(rate, rel=1e-3)
     # Consecutive Motive frames, stamps from Motive's clock: 1/120 s apart.
     assert np.diff(tracked.stamps_ns) == pytest.approx(1e9 / rate, abs=2)
+
+
+def test_cli_serve_and_probe(tmp_path):
+    """`uuomocap natnet serve FILE` imitates Motive; `uuomocap natnet probe` reports what it sends."""
+    import json
+    import subprocess
+    import sys
+
+    from uuomocap.protocol.markerio import write_c3d
+
+    t = np.arange(240) / 120.0
+    pos = np.stack([np.stack([np.cos(t + k), 1.0 + 0 * t, np.sin(t + k)], 1) for k in range(4)], 1)
+    pos[50:60, 2] = np.nan
+    write_c3d(tmp_path / "take.c3d", pos, 120.0, up_axis="+y")
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    serve = subprocess.Popen([sys.executable, "-m", "uuomocap.cli", "natnet", "serve", str(tmp_path / "take.c3d"),
+                              "--command-port", str(port), "--wait-client", "20", "--bitstream", "3.1", "--json"],
+                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        probe = subprocess.run([sys.executable, "-m", "uuomocap.cli", "natnet", "probe", "--command-port", str(port),
+                                "--seconds", "1", "--json"], capture_output=True, text=True, timeout=30)
+        assert probe.returncode == 0, probe.stderr
+        report = json.loads(probe.stdout)
+        out, _ = serve.communicate(timeout=20)
+    finally:
+        if serve.poll() is None:
+            serve.kill()
+            serve.wait()
+    assert report["natnet_version"] == "3.1.0.0" and report["transport"] == "unicast"
+    assert report["frames"] >= 60 and report["rate_hz"] == pytest.approx(120.0, rel=1e-3)
+    assert 3 <= report["points_per_frame"]["mean"] <= 4 and report["points_per_frame"]["max"] == 4
+    assert report["stats"]["malformed"] == 0 and report["stats"]["gaps"] == 0
+    assert json.loads(out)["frames"] == 240
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as silent:
+        silent.bind(("127.0.0.1", 0))
+        probe = subprocess.run([sys.executable, "-m", "uuomocap.cli", "natnet", "probe", "--command-port",
+                                str(silent.getsockname()[1]), "--seconds", "0.2"], capture_output=True, text=True,
+                               timeout=30)
+    assert probe.returncode == 2 and probe.stderr.startswith("uuomocap: error: no NatNet server answered")

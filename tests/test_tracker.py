@@ -264,3 +264,29 @@ def test_offline_raw_unlabeled_trc():
     assert s["max_track_frames"] > 400  # some markers are followed for over a second
     assert 0.0 < s["frames_with_ghosts_rejected"] < 1.0
     assert 0.4 < s["tracked_point_fraction"] < 1.0
+
+
+def test_track_cli_writes_one_column_per_track(tmp_path, capsys):
+    import json
+
+    from uuomocap.cli import main
+    from uuomocap.protocol.markerio import read_markers, write_trc
+
+    pos, visible = synthetic_markers(4, frames=240, markers=6)
+    pos = np.where(visible[..., None], pos, np.nan)
+    # Shuffle columns every frame: a raw stream's columns are point lists, not markers.
+    rng = np.random.default_rng(0)
+    raw = np.stack([p[rng.permutation(6)] for p in pos])
+    write_trc(tmp_path / "raw.trc", raw, RATE)
+    assert main(["track", str(tmp_path / "raw.trc"), "--out", str(tmp_path / "tracked.c3d"), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["tracks"] == 6 and report["out"]["tracks_written"] == 6
+    tracked = read_markers(tmp_path / "tracked.c3d")
+    assert tracked.positions.shape == (240, 6, 3)
+    # Each written column follows one synthetic marker: match columns to markers on a visible frame.
+    f = 100
+    d = np.linalg.norm(tracked.positions[f][:, None] - pos[f][None], axis=2)
+    match = np.nanargmin(np.where(np.isnan(d), np.inf, d), axis=1)
+    both = tracked.visible & visible[:, match]
+    err = np.linalg.norm(tracked.positions - pos[:, match], axis=2)[both]
+    assert both.sum() > 0.95 * visible.sum() and err.max() < 1e-4
