@@ -101,6 +101,39 @@ def test_heatmap_refinement_moves_to_peak():
     np.testing.assert_allclose(out[1:], xy[1:])  # no confident peak -> unchanged
 
 
+# ----------------------------------------------------------------------------- converted models
+def test_converted_onnx_models_match_tflite_reference(pose_models):
+    """Our TFLite->ONNX conversion reproduces the TFLite interpreter (reference values measured
+    once with ai-edge-litert 2.3 on the clip's first frame, plain INTER_AREA resize)."""
+    _need_video()
+    import cv2
+
+    from uuomocap.solver_core.pose_estimators import make_session
+
+    ok, bgr = cv2.VideoCapture(str(VIDEO)).read()
+    assert ok
+    rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    det = make_session(pose_models.detector)
+    x = (cv2.resize(rgb, (224, 224), interpolation=cv2.INTER_AREA).astype(np.float32) / 127.5 - 1)[None]
+    boxes, scores = det.run(["Identity", "Identity_1"], {det.get_inputs()[0].name: x})
+    best = int(np.argmax(scores.ravel()))
+    assert best == 417 and scores.ravel()[best] == pytest.approx(3.7159374, abs=2e-3)
+    np.testing.assert_allclose(boxes[0, best], [-1.618824, -1.770567, 44.725056, 44.72499, -6.686168, 44.826817,
+                                                0.726942, -15.262758, -4.797709, 6.115647, 1.089903, -40.680923],
+                               atol=2e-3)
+    lm = make_session(pose_models.landmark)
+    x = (cv2.resize(rgb, (256, 256), interpolation=cv2.INTER_AREA).astype(np.float32) / 255)[None]
+    land, flag, heat, world = lm.run(["Identity", "Identity_1", "Identity_3", "Identity_4"],
+                                     {lm.get_inputs()[0].name: x})
+    np.testing.assert_allclose(land[0, :10], [121.47266, 60.864532, -12.787178, 5.229393, 6.519107, 119.77415,
+                                              57.898407, -7.777757, 4.577803, 6.722958], atol=2e-3)
+    assert flag.ravel()[0] == pytest.approx(0.99993, abs=1e-4)
+    np.testing.assert_allclose(world[0, :6], [0.179382, -0.650522, -0.040599, 0.162918, -0.690975, -0.028388],
+                               atol=1e-4)
+    np.testing.assert_allclose(heat[0, 32, 32, :4], [-26.826332, -33.17326, -32.22712, -29.550203], atol=2e-3)
+    assert [o.name for o in lm.get_outputs()] == ["Identity", "Identity_1", "Identity_3", "Identity_4"]  # no mask
+
+
 # ----------------------------------------------------------------------------- default estimator
 def test_blazepose_prior_on_real_video(pose_models, tmp_path, capsys):
     _need_video()
