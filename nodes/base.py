@@ -152,6 +152,7 @@ class Node:
     DIAG_S: ClassVar[float] = 2.0
     TIMER_S: ClassVar[float | None] = None  # period of on_timer(), None = never
     DRAIN_ON_STOP_S: ClassVar[float] = 0.0  # sinks: keep handling until the input is idle this long
+    DRAIN_MAX_S: ClassVar[float] = 2.0  # ... but never longer than this
     STOP_TIMEOUT_S: ClassVar[int] = 10  # after a stop request, SIGALRM ends the process
 
     # ---- ports --------------------------------------------------------------------------
@@ -474,7 +475,7 @@ class Node:
     def _drain(self, idle_s: float) -> None:
         """After a stop request: handle what is still arriving until the input is quiet."""
         last = time.monotonic()
-        hard = last + max(2.0, self.STOP_TIMEOUT_S / 2)
+        hard = last + self.DRAIN_MAX_S  # a live stream is never idle: bound the drain
         while time.monotonic() - last < idle_s and time.monotonic() < hard:
             before = self.counters["handled"] + self.counters["eos"]
             self._serve(20)

@@ -257,7 +257,11 @@ def _decode_array(entry: Any, buf: memoryview, limits: Limits) -> tuple[str, np.
             raise DecodeError("array", f"array {name!r:.40}: declared size exceeds {limits.max_array_bytes} bytes")
     if nbytes != buf.nbytes:
         raise DecodeError("size", f"array {name!r:.40}: shape {shape} needs {nbytes} bytes, frame has {buf.nbytes}")
-    arr = np.frombuffer(buf, dtype=dtype).reshape(shape) if nbytes else np.zeros(shape, dtype)
+    if nbytes:
+        arr = np.frombuffer(buf, dtype=dtype).reshape(shape)
+    else:  # empty arrays: nothing to view; read-only like every received array
+        arr = np.zeros(shape, dtype)
+        arr.setflags(write=False)
     return name, arr
 
 

@@ -21,6 +21,7 @@ chunk (it stops quietly at a truncated tail and reports ``truncated``).
 from __future__ import annotations
 
 import os
+import struct
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -215,7 +216,7 @@ def iter_recording(path: str | Path, topics: list[str] | None = None, info: Reco
             if info.messages == 0 and not channels and "magic" in str(exc).lower():
                 raise RecordingError(f"{path}: not an MCAP file ({exc})") from None
             info.truncated = True
-        except (EOFError, ValueError, KeyError, IndexError):
+        except (EOFError, ValueError, KeyError, IndexError, struct.error):
             # a half-written record at the tail of a killed recording
             info.truncated = True
 

@@ -720,7 +720,7 @@ def launch(path: str | Path, cli_args: dict[str, Any] | None = None, *, log_dir=
 
 
 def find_running_graphs() -> list[dict]:
-    """graph.json of every graph whose launcher is alive, newest first."""
+    """graph.json of every graph whose launcher is alive."""
     out = []
     for f in runtime_root().glob("*/graph.json"):
         try:
@@ -745,13 +745,19 @@ def connect_info(graph: str | None = None, endpoints: str | None = None) -> tupl
     graph = graph or os.environ.get("UUOMOCAP_GRAPH")
     running = find_running_graphs()
     if graph:
-        for info in running:
-            if graph in (info["name"], info["runtime_dir"], Path(info["runtime_dir"]).name):
-                return Endpoints(**info["endpoints"]), info
+        matches = [i for i in running if graph in (i["name"], i["runtime_dir"], Path(i["runtime_dir"]).name)]
+        if len(matches) == 1:
+            return Endpoints(**matches[0]["endpoints"]), matches[0]
+        if len(matches) > 1:
+            names = ", ".join(Path(i["runtime_dir"]).name for i in matches)
+            raise LaunchError(f"several running graphs are named {graph!r} ({names}): pass the runtime dir name instead")
         names = ", ".join(f"{i['name']} ({Path(i['runtime_dir']).name})" for i in running) or "none"
         raise LaunchError(f"no running graph named {graph!r} (running: {names})")
     if not running:
         raise LaunchError("no running graph found: start one with `uuomocap launch FILE`, or pass --endpoints FRONTEND,BACKEND")
+    if len(running) > 1:
+        names = ", ".join(Path(i["runtime_dir"]).name for i in running)
+        raise LaunchError(f"{len(running)} graphs are running ({names}): choose one with --graph NAME or $UUOMOCAP_GRAPH")
     return Endpoints(**running[0]["endpoints"]), running[0]
 
 

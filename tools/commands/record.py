@@ -47,6 +47,8 @@ def _run_node(cls, name: str, params: dict, args, duration: float | None = None)
     except ConfigError as exc:
         raise UserError(str(exc)) from None
     node = cls(name, config, Runtime(endpoints, session=(info or {}).get("session", ""), plugin=name))
+    if duration:
+        node.DRAIN_ON_STOP_S = 0.0  # a timed recording of a live graph ends at the deadline
     timer = threading.Timer(duration, node.request_stop) if duration else None
     if timer:
         timer.daemon = True

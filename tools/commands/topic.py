@@ -2,7 +2,7 @@
 
 The tools join the graph's broker as plain subscribers (they never slow it
 down: nobody waits for them). The graph is found from --endpoints, --graph
-NAME, $UUOMOCAP_GRAPH, or the newest running launch.
+NAME, $UUOMOCAP_GRAPH, or the only running launch (several running: say which).
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ import time
 import numpy as np
 
 from uuomocap.commands import UserError, add_json_flag, emit
+from uuomocap.protocol.messages import CONTROL_TYPES
 
 HEALTH_PREFIXES = ("heartbeat/", "diag/", "log/", "ack/", "ready/")
 
@@ -104,7 +105,8 @@ def cmd_list(args) -> int:
 
     def on_env(env):
         t = seen.setdefault(env.topic, {"types": set(), "publishers": set(), "count": 0})
-        t["types"].add(env.type)
+        if env.type not in CONTROL_TYPES or env.topic.startswith(HEALTH_PREFIXES):
+            t["types"].add(env.type)
         t["publishers"].add(env.source)
         t["count"] += 1
 
