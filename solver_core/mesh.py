@@ -101,7 +101,7 @@ def closest_point_on_mesh(
     points: torch.Tensor,
     vertices: torch.Tensor,
     faces: torch.Tensor,
-    max_elements: int = 4_000_000,
+    max_elements: int = 1_000_000,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Exact closest surface point for each query point.
 

@@ -19,6 +19,15 @@ from uuomocap.solver_core.mesh import (
 )
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    # Small ops: intra-op threads only add contention on the shared 2-core machine.
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 @pytest.fixture(scope="module")
 def low():
     return load_body_model("open-low")
