@@ -1,0 +1,432 @@
+"""The streaming graph end to end: real processes, sockets, launch files, recordings.
+
+Every wait polls with a generous deadline (the machine is shared and small);
+no sleep is an assertion.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from uuomocap.launcher import LaunchError, flow_levels, load_launch, validate
+from uuomocap.nodes.base import Runtime, discover_plugins
+from uuomocap.nodes.marker_replay import MarkerReplay
+from uuomocap.nodes.recorder import Recorder
+from uuomocap.protocol.envelope import encode
+from uuomocap.protocol.markerio import read_markers, write_c3d
+from uuomocap.protocol.messages import MarkerFrame, SolvedFrame
+from uuomocap.protocol.prior_file import write_prior_npz
+from uuomocap.protocol.recording import RecordingError, RecordingWriter, iter_recording, recording_info
+from uuomocap.protocol.transport import BrokerThread, Endpoints, Publisher, Subscriber, runtime_root
+
+DEADLINE = 90.0
+
+
+def write_capture(path: Path, frames: int, rate: float = 120.0, markers: int = 12, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    t = np.arange(frames)[:, None, None] / rate
+    pos = rng.uniform(-0.5, 0.5, (1, markers, 3)) + 0.05 * np.sin(2 * np.pi * t + rng.uniform(0, 6, (1, markers, 3)))
+    pos[rng.random((frames, markers)) < 0.05] = np.nan
+    write_c3d(path, pos, rate)
+    return pos
+
+
+def write_yaml(path: Path, doc: dict) -> Path:
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return path
+
+
+def start_launch(tmp_path: Path, file, *args: str, tag: str = "g") -> subprocess.Popen:
+    logs = tmp_path / f"logs-{tag}"
+    logs.mkdir(exist_ok=True)
+    out = open(logs / "launcher.log", "wb")
+    proc = subprocess.Popen([sys.executable, "-m", "uuomocap.launcher", str(file), *args, "--log-dir", str(logs)],
+                            stdout=out, stderr=out, stdin=subprocess.DEVNULL, start_new_session=True)
+    out.close()
+    proc.logs = logs  # type: ignore[attr-defined]
+    return proc
+
+
+def finish(proc: subprocess.Popen, timeout: float = DEADLINE) -> int:
+    try:
+        return proc.wait(timeout)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(30)
+        raise AssertionError(f"graph did not finish in {timeout}s; logs: {_logs(proc)}")
+
+
+def _logs(proc) -> str:
+    return "\n".join(f"== {f.name}\n{f.read_text()[-3000:]}" for f in sorted(proc.logs.glob("*.log")))
+
+
+def poll(predicate, what: str, timeout: float = DEADLINE, every: float = 0.1):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(every)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def graph_json(proc: subprocess.Popen, name: str, nodes: int) -> dict:
+    path = runtime_root() / f"{name}-{proc.pid}" / "graph.json"
+
+    def ready():
+        try:
+            info = json.loads(path.read_text())
+        except (OSError, ValueError):
+            return None
+        pids = [n["pid"] for n in info["nodes"]]
+        return info if len(pids) == nodes and all(pids) and info["broker_pid"] else None
+
+    return poll(ready, f"{path}")
+
+
+def alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state not in ("Z", "X")
+
+
+def group_members(pgid: int) -> list[int]:
+    out = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                fields = (d / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[2]) == pgid and fields[0] not in ("Z", "X"):
+                out.append(int(d.name))
+    return out
+
+
+def recorded(path: Path, topic: str | None = None) -> list:
+    try:
+        return [r.decode() for r in iter_recording(path, topics=[topic] if topic else None)]
+    except RecordingError:
+        return []
+
+
+def content(envs) -> list:
+    """What must be identical between two lockstep runs (not publish times or instance ids)."""
+    out = []
+    for e in envs:
+        m = e.message
+        out.append((e.topic, e.type, e.seq, e.stamp_ns, sorted(m.scalars().items()),
+                    [(k, a.dtype.str, a.shape, a.tobytes()) for k, a in m.arrays().items()]))
+    return out
+
+
+# ------------------------------------------------------------------------------------------
+# Validation
+# ------------------------------------------------------------------------------------------
+
+
+def test_launch_validation_reports_every_problem(tmp_path):
+    cap = tmp_path / "m.c3d"
+    write_capture(cap, 24)
+
+    def problems(doc: dict, **args) -> str:
+        with pytest.raises(LaunchError) as exc:
+            validate(load_launch(write_yaml(tmp_path / "g.yaml", doc), args))
+        return str(exc.value)
+
+    replay = {"name": "replay", "plugin": "marker_replay", "params": {"file": str(cap)}}
+    text = problems({"nodes": [
+        replay,
+        {"name": "x", "plugin": "no_such_plugin"},
+        {"name": "rec", "plugin": "recorder", "params": {"out": "a.mcap", "chunk_kib": "big"}},
+        {"name": "rec2", "plugin": "recorder", "params": {"out": "b.mcap", "colour": 1}},
+        {"name": "relay", "plugin": "relay", "params": {"input": "markers/labels", "output": "x/y"}},
+    ]})
+    assert "plugin 'no_such_plugin' is not installed" in text and "marker_replay" in text
+    assert "parameter 'chunk_kib' must be int" in text
+    assert "unknown parameter 'colour'" in text
+    assert "subscribes to 'markers/labels' (port input) but no node publishes it" in text
+
+    assert "duplicate node name" in problems({"nodes": [replay, replay]})
+    assert "no such marker file" in problems({"nodes": [{**replay, "params": {"file": "/nope.c3d"}}]})
+    assert "ack_from names 'ghost'" in problems({"nodes": [{**replay, "params": {"file": str(cap), "ack_from": ["ghost"]}}]})
+    doc = {"args": {"m": {"help": "markers"}}, "nodes": [{**replay, "params": {"file": "$(arg m)"}}]}
+    assert "argument 'm' is required (markers)" in problems(doc)
+    assert "unknown argument 'speed'" in problems(doc, m=str(cap), speed=2)
+    assert "$(arg q) names no declared argument" in problems({"nodes": [{**replay, "params": {"file": "$(arg q)"}}]})
+    assert "respawn policy must be one of" in problems({"nodes": [{**replay, "respawn": "sometimes"}]})
+
+    # endpoint collisions: a tcp port someone holds, an ipc dir with a live broker
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        text = problems({"transport": {"kind": "tcp", "frontend_port": port, "backend_port": port}, "nodes": [replay]})
+        assert "frontend and backend are the same" in text and "cannot be bound" in text
+    broker = BrokerThread(Endpoints.ipc(tmp_path))
+    try:
+        assert "in use by another running graph" in problems({"transport": {"kind": "ipc", "dir": str(tmp_path)}, "nodes": [replay]})
+    finally:
+        broker.stop()
+
+
+def test_substitutions_includes_conditions_and_flow_order(tmp_path):
+    cap = tmp_path / "m.c3d"
+    write_capture(cap, 24)
+    write_yaml(tmp_path / "inner.yaml", {
+        "args": {"src": {}, "out": {"default": "$(dirname)/inner.mcap"}, "with_relay": {"default": False}},
+        "nodes": [
+            {"name": "replay", "plugin": "marker_replay", "params": {"file": "$(arg src)"}},
+            {"name": "relay", "plugin": "relay", "if": "$(arg with_relay)", "params": {"input": "markers/raw", "output": "markers/copy"}},
+            {"name": "rec", "plugin": "recorder", "params": {"out": "$(arg out)", "topics": ["markers/raw", "log/"]}},
+        ],
+    })
+    outer = write_yaml(tmp_path / "outer.yaml", {
+        "args": {"cap": {}, "relay": {"default": "$(exists $(arg cap))"}},
+        "include": [{"file": "inner.yaml", "args": {"src": "$(arg cap)", "with_relay": "$(arg relay)"}}],
+        "nodes": [{"name": "viewer", "plugin": "viewer", "unless": True}],
+    })
+    g = validate(load_launch(outer, {"cap": str(cap)}))
+    assert [n.spec.name for n in g.nodes] == ["replay", "relay", "rec"]
+    assert g.nodes[2].config.out == str(tmp_path / "inner.mcap")
+    assert g.expect["replay"] == {"markers/raw": ["rec", "relay"]}
+    assert flow_levels(g) == [["replay"], ["relay", "rec"]]
+    g = validate(load_launch(outer, {"cap": str(cap), "relay": False}))
+    assert [n.spec.name for n in g.nodes] == ["replay", "rec"]
+
+
+def test_shipped_session_graphs_name_missing_plugins(tmp_path):
+    session = tmp_path / "session"
+    session.mkdir()
+    write_capture(session / "markers.c3d", 24)
+    F = 10
+    write_prior_npz(session / "prior.npz", {
+        "rate_hz": np.array(30.0), "stamps_ns": np.arange(F, dtype=np.int64) * 33_333_333,
+        "global_orient": np.zeros((F, 3)), "body_pose": np.zeros((F, 23, 3)), "betas": np.zeros((F, 10)),
+        "valid": np.ones(F, bool), "confidence": np.ones(F), "camera_frame": np.array(True), "body_model": np.array("open-low")})
+    installed = discover_plugins()
+    for name in ("replay_session", "offline_solve"):
+        spec = load_launch(name, {"session": str(session)})
+        assert "prior" in [n.name for n in spec.nodes] and "video_prior" not in [n.name for n in spec.nodes]
+        missing = [p for p in ("segmenter", "solver") if p not in installed]
+        if not missing:
+            validate(spec)
+            continue
+        with pytest.raises(LaunchError) as exc:
+            validate(spec)
+        for p in missing:
+            assert f"plugin '{p}' is not installed" in str(exc.value)
+    (session / "prior.npz").unlink()
+    spec = load_launch("replay_session", {"session": str(session)})
+    assert "video_prior" in [n.name for n in spec.nodes] and "prior" not in [n.name for n in spec.nodes]
+
+
+# ------------------------------------------------------------------------------------------
+# Slow joiners (in-process nodes on threads)
+# ------------------------------------------------------------------------------------------
+
+
+def test_publisher_waits_for_a_late_subscriber_and_loses_nothing(tmp_path):
+    cap = tmp_path / "m.c3d"
+    write_capture(cap, 60)
+    ep = Endpoints.ipc(tmp_path)
+    broker = BrokerThread(ep)
+    replay = MarkerReplay("replay", MarkerReplay.parse_config({"file": str(cap), "speed": 4.0, "ack_from": ["late"]}, "replay"),
+                          Runtime(ep, expect={"markers/raw": ["late"]}, ready_timeout_s=60))
+    rec = Recorder("late", Recorder.parse_config({"out": str(tmp_path / "late.mcap"), "topics": ["markers/raw"]}, "late"),
+                   Runtime(ep, ack=True))
+    codes = {}
+    t_replay = threading.Thread(target=lambda: codes.setdefault("replay", replay.run()))
+    t_rec = threading.Thread(target=lambda: codes.setdefault("rec", rec.run()))
+    try:
+        t_replay.start()
+        time.sleep(1.0)  # the subscriber joins late on purpose (setup, not an assertion)
+        t_rec.start()
+        t_replay.join(DEADLINE)
+        rec.request_stop()
+        t_rec.join(DEADLINE)
+    finally:
+        replay.request_stop()
+        rec.request_stop()
+        broker.stop()
+    assert codes == {"replay": 0, "rec": 0}
+    frames = recorded(tmp_path / "late.mcap", "markers/raw")
+    assert [e.seq for e in frames if e.type == "MarkerFrame"] == list(range(60))
+    assert replay.counters.get("ready_timeouts", 0) == 0
+
+
+# ------------------------------------------------------------------------------------------
+# Launched graphs (separate processes)
+# ------------------------------------------------------------------------------------------
+
+
+def test_record_markers_lockstep_is_complete_and_reproducible(tmp_path):
+    cap = tmp_path / "m.c3d"
+    write_capture(cap, 150)
+    runs = []
+    for i in range(2):
+        out = tmp_path / f"run{i}.mcap"
+        proc = start_launch(tmp_path, "record_markers", f"markers:={cap}", f"out:={out}", "lockstep:=true", "window:=4", tag=f"r{i}")
+        assert finish(proc) == 0, _logs(proc)
+        info = recording_info(out)
+        assert info.finished and not info.truncated
+        runs.append(recorded(out))
+    frames = [e for e in runs[0] if e.type == "MarkerFrame"]
+    assert [e.seq for e in frames] == list(range(150))
+    assert content(runs[0]) == content(runs[1])
+    md, ref = read_markers(tmp_path / "run0.mcap"), read_markers(cap)
+    assert md.n_frames == 150 and np.array_equal(md.visible, ref.visible)
+    assert np.allclose(np.nan_to_num(md.positions), np.nan_to_num(ref.positions), atol=1e-6)
+
+
+def test_lockstep_play_to_recorder_exports_identical_npz(tmp_path):
+    src = tmp_path / "solved_src.mcap"
+    w = RecordingWriter(src)
+    rng = np.random.default_rng(3)
+    for i in range(40):
+        for kind in ("estimate", "refined") if i < 35 else ("estimate",):
+            msg = SolvedFrame(stamp_ns=i * 8_333_333, frame_index=i, kind=kind, betas=np.zeros(16, np.float32),
+                              poses=rng.normal(size=72).astype(np.float32), trans=rng.normal(size=3).astype(np.float32),
+                              joints=rng.normal(size=(24, 3)).astype(np.float32), marker_faces=np.arange(4, dtype=np.int32),
+                              marker_bary=np.full((4, 3), 0.25, np.float32), marker_parts=["left_leg"] * 4, rate_hz=120.0)
+            from uuomocap.protocol.envelope import decode
+
+            w.write(decode(encode("body/solved", msg, seq=i, stamp_ns=msg.stamp_ns, source="solver", instance=1)))
+    w.close()
+    npz = []
+    for i in range(2):
+        out = tmp_path / f"play{i}.mcap"
+        g = write_yaml(tmp_path / f"play{i}.yaml", {"nodes": [
+            {"name": "play", "plugin": "play", "params": {"file": str(src), "lockstep": True, "ack_from": ["rec"]}, "on_exit": "shutdown"},
+            {"name": "rec", "plugin": "recorder", "params": {"out": str(out), "topics": ["body/solved"], "method": "stream-test"}},
+        ]})
+        proc = start_launch(tmp_path, g, tag=f"p{i}")
+        assert finish(proc) == 0, _logs(proc)
+        npz.append(out.with_suffix(".npz").read_bytes())
+    assert npz[0] == npz[1]
+    with np.load(tmp_path / "play0.npz", allow_pickle=False) as z:
+        assert z["poses"].shape == (40, 72) and z["frame_kind"].tolist().count("refined") == 35
+        assert str(z["method"]) == "stream-test"
+
+
+def test_killed_node_is_respawned_and_recording_continues(tmp_path):
+    cap = tmp_path / "m.c3d"
+    write_capture(cap, 6 * 60, rate=60.0)
+    out = tmp_path / "relayed.mcap"
+    g = write_yaml(tmp_path / "relay.yaml", {"nodes": [
+        {"name": "replay", "plugin": "marker_replay", "params": {"file": str(cap), "ack_from": ["rec"]}, "on_exit": "shutdown"},
+        {"name": "relay", "plugin": "relay", "params": {"input": "markers/raw", "output": "markers/relayed"},
+         "respawn": {"policy": "on-failure", "max_retries": 2, "backoff_s": 0.2}},
+        {"name": "rec", "plugin": "recorder", "params": {"out": str(out), "topics": ["markers/relayed"], "flush_interval_s": 0.2}},
+    ]})
+    proc = start_launch(tmp_path, g, tag="k")
+    try:
+        info = graph_json(proc, "relay", 3)
+        relay_pid = next(n["pid"] for n in info["nodes"] if n["name"] == "relay")
+        poll(lambda: len(recorded(out)) >= 30, "30 relayed frames")
+        os.kill(relay_pid, signal.SIGKILL)
+        code = finish(proc)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    log = (proc.logs / "launcher.log").read_text()
+    assert "node 'relay' ended (signal SIGKILL); respawning" in log, log
+    frames = recorded(out)
+    instances = [e.instance for e in frames if e.type == "MarkerFrame"]
+    assert len(set(instances)) == 2, "frames from the relay before and after its respawn"
+    after = [e for e in frames if e.type == "MarkerFrame" and e.instance == instances[-1]]
+    assert len(after) >= 30 and after[-1].message.frame_index == 6 * 60  # relayed up to the last frame
+    assert code == 0
+
+
+def test_sigkill_recorder_then_launcher_leaves_readable_file_and_no_process(tmp_path):
+    cap = tmp_path / "m.c3d"
+    write_capture(cap, 240)
+    out = tmp_path / "loop.mcap"
+    proc = start_launch(tmp_path, "record_markers", f"markers:={cap}", f"out:={out}", "loop:=true", tag="s")
+    try:
+        info = graph_json(proc, "record_markers", 2)
+        rec_pid = next(n["pid"] for n in info["nodes"] if n["name"] == "recorder")
+        seen = poll(lambda: len(recorded(out)) >= 120 and len(recorded(out)), "flushed chunks")
+        os.kill(rec_pid, signal.SIGKILL)
+        poll(lambda: not alive(rec_pid), "recorder to die")
+        after_kill = recording_info(out)
+        assert not after_kill.finished and after_kill.messages >= seen
+        seqs = [e.seq for e in recorded(out, "markers/raw")]
+        assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+        respawned = out.with_name("loop.respawn1.mcap")
+        poll(lambda: len(recorded(respawned)) > 0, "the respawned recorder's file")
+
+        info = graph_json(proc, "record_markers", 2)
+        pids = [n["pid"] for n in info["nodes"]] + [info["broker_pid"]]
+        assert all(alive(p) for p in pids)
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(30)
+        poll(lambda: not any(alive(p) for p in pids) and not group_members(info["pgid"]), "every graph process to die", timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
+def test_malformed_messages_are_counted_while_the_graph_runs(tmp_path):
+    cap = tmp_path / "m.c3d"
+    write_capture(cap, 5 * 60, rate=60.0)
+    out = tmp_path / "fuzz.mcap"
+    png = tmp_path / "view.png"
+    g = write_yaml(tmp_path / "fuzz.yaml", {"nodes": [
+        {"name": "replay", "plugin": "marker_replay", "params": {"file": str(cap), "ack_from": ["rec"]}, "on_exit": "shutdown"},
+        {"name": "rec", "plugin": "recorder", "params": {"out": str(out), "topics": ["markers/raw", "diag/rec"], "flush_interval_s": 0.2}},
+        {"name": "view", "plugin": "viewer", "params": {"out_png": str(png), "period_s": 0.3, "status": False}},
+    ]})
+    proc = start_launch(tmp_path, g, tag="f")
+    pub = sub = None
+    try:
+        info = graph_json(proc, "fuzz", 3)
+        poll(lambda: len(recorded(out, "markers/raw")) >= 10, "the recorder to record")
+        pub, sub = Publisher(info["endpoints"]["frontend"], "fuzzer"), Subscriber(info["endpoints"]["backend"])
+        sub.subscribe("markers/raw")
+        end = time.monotonic() + DEADLINE
+        while not any(e.type == "Probe" for e in sub.recv(50)):  # our path to the broker is live
+            pub.send_probe("markers/raw", 1)
+            assert time.monotonic() < end
+        good = [bytes(f) for f in encode("markers/raw", MarkerFrame(stamp_ns=0, frame_index=0, positions=np.zeros((2, 3), np.float32),
+                                                                   visible=np.ones(2, bool)), seq=0, stamp_ns=0, source="fuzzer", instance=1)]
+        rng = np.random.default_rng(0)
+        for i in range(25):
+            pub.send_raw([good[0], good[1], good[2][: int(rng.integers(0, 24))], good[3]])  # wrong sizes
+            hdr = bytearray(good[1])
+            hdr[int(rng.integers(2, len(hdr)))] ^= 0xFF
+            pub.send_raw([good[0], bytes(hdr), *good[2:]])  # fuzzed header (rejected or not, never fatal)
+
+        def rejected():
+            diags = [e.message for e in recorded(out, "diag/rec")]
+            return diags and diags[-1].counters.get("rejected", 0) >= 25
+
+        poll(rejected, "the recorder's diagnostics to count the rejects")
+        assert finish(proc) == 0, _logs(proc)
+    finally:
+        for s in (pub, sub):
+            if s is not None:
+                s.close()
+        if proc.poll() is None:
+            proc.kill()
+    frames = [e for e in recorded(out, "markers/raw") if e.type == "MarkerFrame"]
+    replayed = [e.seq for e in frames if e.source == "replay"]
+    assert replayed == list(range(5 * 60)), "every valid frame recorded despite the garbage"
+    assert png.is_file() and png.stat().st_size > 1000
+    assert "rejected message on 'markers/raw'" in (proc.logs / "rec.log").read_text()
