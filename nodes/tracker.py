@@ -53,7 +53,9 @@ class Tracker(Node):
     def on_markers(self, msg: MarkerFrame, env) -> None:
         c = self.config
         rate = msg.rate_hz if c.use_stream_rate and msg.rate_hz > 0 else 0.0
-        if rate and abs(rate - self.tracker.config.rate_hz) > 1e-6 * rate:
+        # Only a real rate change rebuilds the tracker (and drops its tracks): the rate sets frame
+        # counts such as the birth delay; the gates follow the actual stamps anyway.
+        if rate and abs(rate - self.tracker.config.rate_hz) > 0.02 * rate:
             if self.tracker.stats.frames:
                 self.log.info("stream rate changed to %.3f Hz: restarting the tracker", rate)
             self.tracker = MarkerTracker(c.tracker_config(rate))
