@@ -19,6 +19,7 @@ Speed notes (why it is written this way):
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -100,6 +101,26 @@ class ModelCache:
 
     def __init__(self, model) -> None:
         self._m = model
+        # Per-SurfacePoints gathers of template / shape basis / weights rows, reused while the
+        # SurfacePoints object lives (solvers evaluate the same points every iteration).
+        self._points: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+    def point_data(self, points: "SurfacePoints") -> tuple:
+        """(template (3,n), shapedirs (nb,3,n), weights (J,n), posedirs (207,3,n)|None, corner weights (P,K))."""
+        hit = self._points.get(points)
+        if hit is not None:
+            return hit
+        vids, bw = points.corner_vertices(self._m.faces)
+        flat = vids.reshape(-1)
+        data = (
+            self.template_cm[:, flat].contiguous(),
+            self.shapedirs_cm[:, :, flat].contiguous(),
+            self.weights_t[:, flat].contiguous(),
+            None if self.posedirs_cm is None else self.posedirs_cm[:, :, flat].contiguous(),
+            bw.to(self._m.v_template.dtype),
+        )
+        self._points[points] = data
+        return data
 
     # Vertex data in component-major layout ((3, N): all x, then all y, then all z) so the
     # skinning below works on long contiguous rows.
@@ -252,11 +273,8 @@ def forward(
         pdirs = cache.posedirs_cm
         corners = None
     else:
-        vids, bw = points.corner_vertices(model.faces)
-        flat = vids.reshape(-1)
-        tmpl, sdirs, wt = cache.template_cm[:, flat], cache.shapedirs_cm[:nb, :, flat], cache.weights_t[:, flat]
-        pdirs = None if cache.posedirs_cm is None else cache.posedirs_cm[:, :, flat]
-        corners = bw.to(rot.dtype)  # (P, K)
+        tmpl, sdirs, wt, pdirs, corners = cache.point_data(points)  # corners: (P, K) weights
+        sdirs = sdirs[:nb]
     n = tmpl.shape[1]
     use_pose_blend = pose_blend and pdirs is not None
     # A'[b, i, (j, k)] = A[b, j, i, k]: blending and applying the transforms is then one matmul
