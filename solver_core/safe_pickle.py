@@ -9,7 +9,7 @@ any code the file names, so this module resolves ONLY:
   * chumpy objects -> small stand-ins that keep their state (``x`` / ``a``),
   * scipy sparse csc/csr/coo matrices -> stand-ins rebuilt densely with numpy,
   * joblib's ``NumpyArrayWrapper`` (the array bytes follow it in the stream),
-  * a few inert builtins (set, frozenset, complex, slice, OrderedDict),
+  * inert builtins (plain value types, set, frozenset, complex, slice, OrderedDict, defaultdict),
 
 and refuses every other global with ``UnsafePickleError`` naming it, before
 anything is called.  Neither chumpy, scipy nor joblib is imported.
@@ -185,10 +185,16 @@ _INERT = {
     ("builtins", "complex"): complex, ("__builtin__", "complex"): complex,
     ("builtins", "slice"): slice, ("__builtin__", "slice"): slice,
     ("collections", "OrderedDict"): collections.OrderedDict,
+    ("collections", "defaultdict"): collections.defaultdict,
     ("_codecs", "encode"): _codecs_encode,
     ("copy_reg", "_reconstructor"): _reconstructor, ("copyreg", "_reconstructor"): _reconstructor,
     ("__builtin__", "object"): object, ("builtins", "object"): object,
 }
+# Plain value types (e.g. a defaultdict's factory); calling them cannot reach foreign code
+# because their arguments can only be values this unpickler built.
+for _t in (list, dict, tuple, int, float, bool, str):
+    _INERT[("builtins", _t.__name__)] = _t
+    _INERT[("__builtin__", _t.__name__)] = _t
 _JOBLIB = ("joblib.numpy_pickle", "sklearn.externals.joblib.numpy_pickle")
 
 DEFAULT_ALLOWED = ("numpy", "chumpy", "scipy.sparse", "joblib")

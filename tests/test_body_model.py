@@ -192,8 +192,11 @@ def test_missing_and_malformed_files_explain(tmp_path):
 
 def test_joblib_pickle_of_arrays(tmp_path):
     joblib = pytest.importorskip("joblib")
+    import collections
+
     data = {"pose": np.random.rand(5, 72).astype(np.float32), "fortran": np.asfortranarray(np.random.rand(3, 4)),
-            "tid": [np.array([1, 2]), 3], "name": "x"}
+            "tid": [np.array([1, 2]), 3], "name": "x", "conf": np.float64(0.5),
+            "per_frame": collections.defaultdict(list, {"f1": [np.zeros(3)]})}
     for compress in (0, 3):
         path = tmp_path / f"phalp_{compress}.pkl"
         joblib.dump(data, path, compress=compress)
@@ -201,7 +204,8 @@ def test_joblib_pickle_of_arrays(tmp_path):
         np.testing.assert_array_equal(out["pose"], data["pose"])
         np.testing.assert_array_equal(out["fortran"], data["fortran"])
         np.testing.assert_array_equal(out["tid"][0], data["tid"][0])
-        assert out["name"] == "x"
+        assert out["name"] == "x" and out["conf"] == 0.5
+        np.testing.assert_array_equal(out["per_frame"]["f1"][0], np.zeros(3))
 
 
 # --------------------------------------------------------------------------- open model
