@@ -12,9 +12,14 @@ Speed notes (why it is written this way):
   * Joints never need the mesh: J_regressor . shapedirs is precomputed once per
     model, so evaluating a few surface points costs O(P) not O(N).
   * Forward kinematics runs one batched matmul per tree depth level (9 for
-    SMPL) rather than one per joint.
-  * Skinning blends the 3x4 transforms per point (weights @ A) and applies one
-    small product, which is the cheapest order on CPU for N >> 24.
+    SMPL) rather than one per joint, with one split/cat instead of per-level
+    slices (each slice costs a zero-filled full-size gradient in backward).
+  * With one body shape for the batch (the usual solver case) skinning is a
+    single (B*3, 4J) @ (4J, n) matmul against X[(j,k), n] = w[n,j] (v_n,1)[k]:
+    no per-point 3x4 transforms are ever built.  Per-frame shapes or pose blend
+    shapes use per-point transforms in a component-major (3, n) layout.
+  * Tiny batched matmuls (3x3 @ 3x1 per vertex) are avoided: on CPU they cost
+    more in backward than the whole rest of the pass.
 """
 
 from __future__ import annotations
@@ -208,7 +213,7 @@ def _forward_kinematics(cache: ModelCache, rot: torch.Tensor, rel: torch.Tensor)
     """World 3x4 transforms (B, J, 3, 4) from local rotations (B,J,3,3) and offsets to the parent (B,J,3)."""
     B, J = rot.shape[:2]
     local = torch.cat([rot, rel[..., None]], dim=-1)  # (B, J, 3, 4) = [R_j | J_j - J_parent]
-    row = _HOMOGENEOUS_ROW.to(rot.dtype).expand(B, J, 1, 4)
+    row = _HOMOGENEOUS_ROW.to(dtype=rot.dtype, device=rot.device).expand(B, J, 1, 4)
     local4 = torch.cat([local, row], dim=2)  # (B, J, 4, 4)
     sizes, parent_sel, inverse = cache.fk_plan
     if sizes is not None:
@@ -245,8 +250,9 @@ def forward(
     """
     cache = model.cache
     J = model.parents.shape[0]
-    rot = pose_to_matrices(pose, J)
-    betas = _shape_betas(betas.to(rot.dtype), model.num_betas)
+    dtype = model.v_template.dtype  # float32: inputs of other precisions are converted
+    rot = pose_to_matrices(pose.to(dtype), J)
+    betas = _shape_betas(torch.as_tensor(betas).to(dtype), model.num_betas)
     nb = betas.shape[1]
     B = max(rot.shape[0], betas.shape[0])
     if rot.shape[0] != B:
@@ -295,7 +301,7 @@ def forward(
         # component-wise on long rows.
         v = tmpl + (betas @ sdirs.reshape(nb, -1)).reshape(-1, 3, n)  # (B|1, 3, n)
         if use_pose_blend:
-            feat = (rot[:, 1:] - torch.eye(3, dtype=rot.dtype)).reshape(B, -1)
+            feat = (rot[:, 1:] - torch.eye(3, dtype=rot.dtype, device=rot.device)).reshape(B, -1)
             v = v + (feat @ pdirs.reshape(pdirs.shape[0], -1)).reshape(B, 3, n)
         T = (A.reshape(B, J, 12).transpose(1, 2).reshape(B * 12, J) @ wt).reshape(B, 3, 4, n)
         out = T[:, :, 0] * v[:, None, 0] + T[:, :, 1] * v[:, None, 1] + T[:, :, 2] * v[:, None, 2] + T[:, :, 3]
@@ -305,7 +311,7 @@ def forward(
     verts = verts.contiguous()
     joints = glob_pos
     if trans is not None:
-        trans = trans.to(verts.dtype).reshape(-1, 1, 3)
+        trans = trans.to(dtype).reshape(-1, 1, 3)
         verts = verts + trans
         joints = joints + trans
     return LBSOutput(joints=joints, vertices=verts, joint_rotations=glob_rot, skinning=A)
