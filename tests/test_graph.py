@@ -163,6 +163,9 @@ def test_launch_validation_reports_every_problem(tmp_path):
     assert "duplicate node name" in problems({"nodes": [replay, replay]})
     assert "no such marker file" in problems({"nodes": [{**replay, "params": {"file": "/nope.c3d"}}]})
     assert "ack_from names 'ghost'" in problems({"nodes": [{**replay, "params": {"file": str(cap), "ack_from": ["ghost"]}}]})
+    deaf = {"name": "rec", "plugin": "recorder", "params": {"out": "a.mcap", "topics": ["other/topic"]}}
+    assert "'rec' does not subscribe to any of its topics (markers/raw), so it never acknowledges" in problems(
+        {"nodes": [{**replay, "params": {"file": str(cap), "ack_from": ["rec"]}}, deaf], "external_topics": ["other/topic"]})
     doc = {"args": {"m": {"help": "markers"}}, "nodes": [{**replay, "params": {"file": "$(arg m)"}}]}
     assert "argument 'm' is required (markers)" in problems(doc)
     assert "unknown argument 'speed'" in problems(doc, m=str(cap), speed=2)
@@ -329,7 +332,7 @@ def test_killed_node_is_respawned_and_recording_continues(tmp_path):
     write_capture(cap, 6 * 60, rate=60.0)
     out = tmp_path / "relayed.mcap"
     g = write_yaml(tmp_path / "relay.yaml", {"nodes": [
-        {"name": "replay", "plugin": "marker_replay", "params": {"file": str(cap), "ack_from": ["rec"]}, "on_exit": "shutdown"},
+        {"name": "replay", "plugin": "marker_replay", "params": {"file": str(cap), "ack_from": ["relay"]}, "on_exit": "shutdown"},
         {"name": "relay", "plugin": "relay", "params": {"input": "markers/raw", "output": "markers/relayed"},
          "respawn": {"policy": "on-failure", "max_retries": 2, "backoff_s": 0.2}},
         {"name": "rec", "plugin": "recorder", "params": {"out": str(out), "topics": ["markers/relayed"], "flush_interval_s": 0.2}},
@@ -362,6 +365,17 @@ def test_sigkill_recorder_then_launcher_leaves_readable_file_and_no_process(tmp_
     try:
         info = graph_json(proc, "record_markers", 2)
         rec_pid = next(n["pid"] for n in info["nodes"] if n["name"] == "recorder")
+        # the introspection CLI on the running graph
+        gname = f"record_markers-{proc.pid}"  # the runtime dir name selects this graph
+        cli = [sys.executable, "-m", "uuomocap.cli"]
+        hz = json.loads(subprocess.run([*cli, "topic", "hz", "markers/raw", "--graph", gname, "--duration", "1.5", "--json"],
+                                       capture_output=True, text=True, timeout=DEADLINE).stdout)
+        assert hz["messages"] > 60 and hz["gaps"] == 0 and 80 < hz["rate_publish_hz"] < 160
+        health = json.loads(subprocess.run([*cli, "graph", "--graph", gname, "--duration", "2.5", "--json"],
+                                           capture_output=True, text=True, timeout=DEADLINE).stdout)
+        states = {n["name"]: n["state"] for n in health["nodes"]}
+        assert states == {"replay": "running", "recorder": "running"}
+        assert health["topics"]["markers/raw"] == {"publishers": ["replay"], "subscribers": ["recorder"]}
         seen = poll(lambda: len(recorded(out)) >= 120 and len(recorded(out)), "flushed chunks")
         os.kill(rec_pid, signal.SIGKILL)
         poll(lambda: not alive(rec_pid), "recorder to die")

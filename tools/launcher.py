@@ -414,8 +414,10 @@ def validate(spec: GraphSpec) -> ValidGraph:
                 problems.append(f"node '{n.spec.name}': ack_from names '{node}', which is not a node of this graph")
                 continue
             ack_nodes.add(node)
-            if topic and not any(_matches(p, n.spec.remaps.get(topic, topic)) for p in names[node].inputs.values()):
-                problems.append(f"node '{n.spec.name}': ack_from '{entry}' but '{node}' does not subscribe to '{topic}'")
+            wanted = [n.spec.remaps.get(topic, topic)] if topic else list(n.outputs.values())
+            if not any(_matches(p, t) for p in names[node].inputs.values() for t in wanted):
+                what = f"'{topic}'" if topic else f"any of its topics ({', '.join(wanted) or 'none'})"
+                problems.append(f"node '{n.spec.name}': ack_from '{entry}' but '{node}' does not subscribe to {what}, so it never acknowledges")
     expect: dict[str, dict[str, list[str]]] = {}
     for n in valid:
         for t in n.outputs.values():
