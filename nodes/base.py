@@ -154,6 +154,7 @@ class Node:
     DRAIN_ON_STOP_S: ClassVar[float] = 0.0  # sinks: keep handling until the input is idle this long
     DRAIN_MAX_S: ClassVar[float] = 2.0  # ... but never longer than this
     STOP_TIMEOUT_S: ClassVar[int] = 10  # after a stop request, SIGALRM ends the process
+    ACK_REPEAT_S: ClassVar[float] = 0.2  # period of re-sending the latest acks (lockstep)
 
     # ---- ports --------------------------------------------------------------------------
     @classmethod
@@ -195,6 +196,7 @@ class Node:
         self._due: dict[str, float] = {}
         self._reject_logged: dict[str, int] = defaultdict(int)
         self._in_handler = False
+        self._ack_state: dict[tuple[str, str, int], Ack] = {}
 
     # ---- hooks for subclasses -----------------------------------------------------------
     def setup(self) -> None:
@@ -452,7 +454,13 @@ class Node:
 
     def _ack(self, env: Envelope, eos: bool = False) -> None:
         if self.runtime.ack:
-            self._pub.send(f"ack/{self.name}", Ack(self.name, env.topic, env.source, env.instance, env.seq, env.stamp_ns, eos), env.stamp_ns)
+            a = Ack(self.name, env.topic, env.source, env.instance, env.seq, env.stamp_ns, eos)
+            key = (env.topic, env.source, env.instance)
+            prev = self._ack_state.pop(key, None)
+            self._ack_state[key] = Ack(**{**a.scalars(), "eos": eos or bool(prev and prev.eos)})
+            while len(self._ack_state) > 64:  # forget the oldest publisher instances
+                self._ack_state.pop(next(iter(self._ack_state)))
+            self._pub.send(f"ack/{self.name}", self._ack_state[key], env.stamp_ns)
 
     def _wait_ready(self, topic: str) -> None:
         expected = set(self.runtime.expect.get(topic, ()))
@@ -484,7 +492,8 @@ class Node:
 
     def _next_timer_ms(self) -> float:
         now = time.monotonic()
-        due = [self._due.get(k, now) for k in ("hb", "diag", "timer") if k != "timer" or self.timer_s]
+        keys = ["hb", "diag"] + (["timer"] if self.timer_s else []) + (["ack"] if self._ack_state else [])
+        due = [self._due.get(k, now) for k in keys]
         return max(0.0, min(100.0, (min(due) - now) * 1000))
 
     def _timers(self) -> None:
@@ -492,6 +501,12 @@ class Node:
         if now >= self._due.get("hb", 0):
             self._due["hb"] = now + self.HEARTBEAT_S
             self._heartbeat()
+        if self._ack_state and now >= self._due.get("ack", 0):
+            # acks are state: repeat the latest ones so a credit waiter that joined late (or
+            # lost one in flight) catches up instead of waiting for its timeout
+            self._due["ack"] = now + self.ACK_REPEAT_S
+            for a in list(self._ack_state.values()):
+                self._pub.send(f"ack/{self.name}", a, a.stamp_ns)
         if now >= self._due.get("diag", 0):
             self._due["diag"] = now + self.DIAG_S
             self._diagnostics()

@@ -23,6 +23,24 @@ from uuomocap.protocol.prior_file import read_prior_npz
 
 from .base import LATEST, Node, Port
 
+
+@dataclass(frozen=True)
+class PriorReplayConfig:
+    file: str  # prior.npz
+    clock_offset_s: float | None = None  # None: session.yaml next to the file, else 0
+    latency_s: float = 0.0  # simulated estimator delay (following mode)
+    lockstep: bool = False
+    window: int = 16
+    ack_from: list[str] = field(default_factory=list)
+    ack_timeout_s: float = 30.0
+
+    def __post_init__(self):
+        if not Path(self.file).is_file():
+            raise ValueError(f"parameter 'file': no such prior file {self.file!r}")
+        if self.latency_s < 0 or self.window < 1:
+            raise ValueError("latency_s >= 0 and window >= 1 are required")
+
+
 def session_clock_offset(prior_path: Path) -> float:
     session_yaml = prior_path.parent / "session.yaml"
     if not session_yaml.is_file():
@@ -35,6 +53,11 @@ class PriorReplay(Node):
     Config = PriorReplayConfig
     SUBSCRIBES = {"clock": Port("markers/raw", types=("MarkerFrame",), policy=LATEST)}
     PUBLISHES = {"prior": "body/prior"}
+
+    @classmethod
+    def ports(cls, config: PriorReplayConfig):
+        subs, pubs = super().ports(config)
+        return ({} if config.lockstep else subs), pubs  # lockstep runs ahead and needs no marker clock
 
     def setup(self) -> None:
         c = self.config

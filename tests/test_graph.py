@@ -232,11 +232,60 @@ def test_shipped_session_graphs_name_missing_plugins(tmp_path):
             continue
         with pytest.raises(LaunchError) as exc:
             validate(spec)
+        assert len(exc.value.problems) == len(missing), exc.value.problems  # nothing else is wrong
         for p in missing:
             assert f"plugin '{p}' is not installed" in str(exc.value)
     (session / "prior.npz").unlink()
     spec = load_launch("replay_session", {"session": str(session)})
     assert "video_prior" in [n.name for n in spec.nodes] and "prior" not in [n.name for n in spec.nodes]
+
+
+def make_session(d: Path, seconds: float = 1.5, offset_s: float = 0.1) -> tuple[int, np.ndarray]:
+    d.mkdir(parents=True, exist_ok=True)
+    T = int(seconds * 120)
+    write_capture(d / "markers.c3d", T)
+    F = int(seconds * 30)
+    stamps = np.arange(F, dtype=np.int64) * 33_333_333
+    write_prior_npz(d / "prior.npz", {
+        "rate_hz": np.array(30.0), "stamps_ns": stamps, "global_orient": np.zeros((F, 3)),
+        "body_pose": np.random.default_rng(1).normal(size=(F, 23, 3)) * 0.1, "betas": np.zeros((F, 10)),
+        "valid": np.ones(F, bool), "confidence": np.linspace(0.5, 1, F), "camera_frame": np.array(True), "body_model": np.array("open-low")})
+    (d / "session.yaml").write_text(yaml.safe_dump({"format": "uuomocap-session/1", "video": {"rate_hz": 30.0, "clock_offset_s": offset_s}}))
+    return T, stamps
+
+
+@pytest.mark.parametrize("lockstep", [False, True])
+def test_prior_replay_follows_the_marker_clock(tmp_path, lockstep):
+    T, video_stamps = make_session(tmp_path / "s")
+    out = tmp_path / "s.mcap"
+    replay_acks = ["rec", "rec:body/prior"] if lockstep else ["rec"]
+    g = write_yaml(tmp_path / "prior.yaml", {"nodes": [
+        {"name": "replay", "plugin": "marker_replay", "on_exit": "shutdown",
+         "params": {"file": str(tmp_path / "s" / "markers.c3d"), "speed": 2.0, "lockstep": lockstep, "ack_from": replay_acks}},
+        {"name": "prior", "plugin": "prior_replay", "params": {"file": str(tmp_path / "s" / "prior.npz"), "lockstep": lockstep, "ack_from": ["rec"]}},
+        {"name": "rec", "plugin": "recorder", "params": {"out": str(out), "topics": ["markers/raw", "body/prior"]}},
+    ]})
+    proc = start_launch(tmp_path, g, tag="prior")
+    assert finish(proc) == 0, _logs(proc)
+    envs = recorded(out)
+    priors = [e for e in envs if e.type == "BodyPrior"]
+    markers = [e for e in envs if e.type == "MarkerFrame"]
+    assert len(markers) == T
+    offset = 100_000_000  # session.yaml video.clock_offset_s
+    # following the marker clock, the replay ends with the markers; in lockstep the prior runs ahead
+    expected = video_stamps if lockstep else video_stamps[video_stamps + offset <= markers[-1].stamp_ns]
+    assert [p.message.video_stamp_ns for p in priors] == expected.tolist() and len(expected) >= 40
+    assert all(p.stamp_ns == p.message.video_stamp_ns + offset for p in priors)
+    assert priors[3].message.confidence == pytest.approx(np.linspace(0.5, 1, len(video_stamps))[3])
+    order = {id(e): i for i, e in enumerate(envs)}
+    for p in priors:
+        first_marker_after = next((m for m in markers if m.stamp_ns >= p.stamp_ns), None)
+        if first_marker_after is None:
+            assert lockstep
+        elif lockstep:  # the recorder holds every prior up to a frame's stamp before that frame arrives
+            assert order[id(p)] < order[id(first_marker_after)]
+        else:  # a prior is released once the marker clock reached it
+            assert p.publish_ns >= first_marker_after.publish_ns
 
 
 # ------------------------------------------------------------------------------------------
