@@ -97,19 +97,79 @@ def closest_point_on_triangles(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor
     return bary
 
 
+# cdist's matmul formulation loses ~1e-4 m to cancellation; bounds are lowered by this much
+# so they stay valid lower bounds.
+_BOUND_SLACK = 1e-3
+
+
+def _candidate_pass(q, bidx, tri_all, centre, radius, K, max_elements, per_batch: int = 0):
+    """Exact test of each query's K faces with the smallest distance lower bound.
+
+    q (Q, 3) queries, bidx (Q,) their mesh in the batch.  Returns squared distance (Q,),
+    face (Q,), bary (Q, 3) and sure (Q,) -- True when no untested face can be closer.
+    per_batch = P > 0 says the queries are exactly P per mesh in batch order, which allows
+    one batched cdist instead of gathering every query's face centres.
+    """
+    Q, F = q.shape[0], centre.shape[1]
+    K = min(K, F)
+    d2_out = q.new_empty(Q)
+    f_out = torch.empty(Q, dtype=torch.long, device=q.device)
+    b_out = q.new_empty(Q, 3)
+    sure = torch.ones(Q, dtype=torch.bool, device=q.device)
+    if per_batch:
+        chunk = per_batch * max(1, max_elements // (per_batch * F))
+        chunk = chunk if chunk >= per_batch else per_batch
+    else:
+        chunk = max(1, max_elements // (3 * F))
+    for q0 in range(0, Q, chunk):
+        sl = slice(q0, q0 + chunk)
+        qc, bc = q[sl], bidx[sl]
+        # Distance to a face >= distance to its bounding sphere (centroid, radius).
+        if per_batch:
+            b0 = q0 // per_batch
+            nb = qc.shape[0] // per_batch
+            dist_c = torch.cdist(qc.reshape(nb, per_batch, 3), centre[b0:b0 + nb])
+            lower = (dist_c - (radius[b0:b0 + nb, None] + _BOUND_SLACK)).reshape(-1, F)
+        else:
+            lower = (centre[bc] - qc[:, None]).norm(dim=-1) - radius[bc]  # (qc, F)
+        kk = min(K + 1, F)
+        lb, idx = lower.topk(kk, dim=-1, largest=False, sorted=True)
+        cand = idx[:, :K]
+        tri = tri_all[bc[:, None], cand]  # (qc, K, 3, 3)
+        a, b, c = tri[..., 0, :], tri[..., 1, :], tri[..., 2, :]
+        qq = qc[:, None]
+        bary = closest_point_on_triangles(qq, a, b, c)
+        d2 = (bary[..., 0:1] * a + bary[..., 1:2] * b + bary[..., 2:3] * c - qq).square().sum(-1)
+        dmin, arg = d2.min(-1)
+        d2_out[sl] = dmin
+        f_out[sl] = torch.gather(cand, 1, arg[:, None])[:, 0]
+        b_out[sl] = torch.gather(bary, 1, arg[:, None, None].expand(-1, 1, 3))[:, 0]
+        if kk > K:
+            bound = lb[:, K].clamp_min(0)
+            sure[sl] = bound * bound >= dmin * (1 + 1e-5) + 1e-12
+    return d2_out, f_out, b_out, sure
+
+
 def closest_point_on_mesh(
     points: torch.Tensor,
     vertices: torch.Tensor,
     faces: torch.Tensor,
     max_elements: int = 1_000_000,
+    candidates: tuple[int, ...] = (16, 128),
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Exact closest surface point for each query point.
 
     points (B, P, 3), vertices (B, N, 3) (or unbatched (P,3)/(N,3)), faces (F, 3).
-    Returns dist (B, P) metres, face_ids (B, P) long, bary (B, P, 3).  The search runs in
-    chunks of at most ``max_elements`` point-triangle pairs (never a full (B, P, F, 3) tensor);
-    dist is then recomputed from the chosen triangle so it is differentiable with respect to
-    points and vertices (the face choice and barycentrics are treated as constants).
+    Returns dist (B, P) metres, face_ids (B, P) long, bary (B, P, 3).
+
+    Search: each face gets a cheap lower bound on its distance (distance to its bounding
+    sphere); the K faces with the smallest bounds are tested exactly and the answer is
+    certified when the next bound is not below the best exact distance.  Uncertified queries
+    are retried with the next K in ``candidates`` and finally against every face, so the
+    result is always exact.  Work runs in chunks of at most ``max_elements`` point-face
+    pairs, never a full (B, P, F) blow-up.  dist is recomputed from the chosen triangle so
+    it is differentiable with respect to points and vertices (face choice and barycentrics
+    are constants).
     """
     single = points.dim() == 2
     pts = points[None] if single else points
@@ -121,34 +181,29 @@ def closest_point_on_mesh(
             raise ValueError(f"points batch {pts.shape[0]} != vertices batch {v.shape[0]}")
     B, P = pts.shape[:2]
     F = faces.shape[0]
-    best_d = pts.new_full((B, P), float("inf"))
-    best_f = torch.zeros(B, P, dtype=torch.long, device=pts.device)
-    best_b = pts.new_zeros(B, P, 3)
     with torch.no_grad():
         tri_all = v.detach()[:, faces]  # (B, F, 3, 3)
-        pd = pts.detach()
-        f_chunk = max(1, min(F, max_elements // max(1, B * min(P, 256))))
-        p_chunk = max(1, min(P, max_elements // max(1, B * f_chunk)))
-        for p0 in range(0, P, p_chunk):
-            q = pd[:, p0:p0 + p_chunk, None, :]  # (B, p, 1, 3)
-            for f0 in range(0, F, f_chunk):
-                tri = tri_all[:, None, f0:f0 + f_chunk]  # (B, 1, f, 3, 3)
-                a, b, c = tri[..., 0, :], tri[..., 1, :], tri[..., 2, :]
-                bary = closest_point_on_triangles(q, a, b, c)  # (B, p, f, 3)
-                closest = bary[..., 0:1] * a + bary[..., 1:2] * b + bary[..., 2:3] * c
-                d = (closest - q).square().sum(-1)  # (B, p, f)
-                dmin, arg = d.min(-1)
-                better = dmin < best_d[:, p0:p0 + p_chunk]
-                best_d[:, p0:p0 + p_chunk] = torch.where(better, dmin, best_d[:, p0:p0 + p_chunk])
-                best_f[:, p0:p0 + p_chunk] = torch.where(better, arg + f0, best_f[:, p0:p0 + p_chunk])
-                bsel = torch.gather(bary, 2, arg[..., None, None].expand(-1, -1, 1, 3))[:, :, 0]
-                best_b[:, p0:p0 + p_chunk] = torch.where(better[..., None], bsel, best_b[:, p0:p0 + p_chunk])
-    corners = torch.gather(v, 1, faces[best_f].reshape(B, -1, 1).expand(-1, -1, 3)).reshape(B, P, 3, 3)
-    surface = (best_b[..., None] * corners).sum(-2)
+        centre = tri_all.mean(2)  # (B, F, 3)
+        radius = (tri_all - centre[:, :, None]).norm(dim=-1).amax(-1)  # (B, F)
+        q = pts.detach().reshape(-1, 3)
+        bidx = torch.arange(B, device=pts.device).repeat_interleave(P)
+        face = torch.empty(B * P, dtype=torch.long, device=pts.device)
+        bary = q.new_empty(B * P, 3)
+        todo = torch.arange(B * P, device=pts.device)
+        for stage, K in enumerate(tuple(candidates) + (F,)):
+            _, f_k, b_k, sure = _candidate_pass(q[todo], bidx[todo], tri_all, centre, radius, K, max_elements,
+                                                per_batch=P if stage == 0 else 0)
+            face[todo], bary[todo] = f_k, b_k
+            todo = todo[~sure]
+            if todo.numel() == 0:
+                break
+        face, bary = face.reshape(B, P), bary.reshape(B, P, 3)
+    corners = torch.gather(v, 1, faces[face].reshape(B, -1, 1).expand(-1, -1, 3)).reshape(B, P, 3, 3)
+    surface = (bary[..., None] * corners).sum(-2)
     dist = (pts - surface).norm(dim=-1)
     if single:
-        return dist[0], best_f[0], best_b[0]
-    return dist, best_f, best_b
+        return dist[0], face[0], bary[0]
+    return dist, face, bary
 
 
 def sample_surface(

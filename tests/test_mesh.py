@@ -54,8 +54,10 @@ def test_closest_point_matches_brute_force(low):
     pose = torch.randn(2, 24, 3, generator=g) * 0.3
     verts = forward(low, torch.zeros(1, 16), pose).vertices
     pts = verts[:, torch.randint(0, low.num_vertices, (40,), generator=g)] + torch.randn(2, 40, 3, generator=g) * 0.03
-    dist, fid, bary = closest_point_on_mesh(pts, verts, low.faces, max_elements=60_000)  # forces chunking
-    assert (bary >= -1e-6).all() and torch.allclose(bary.sum(-1), torch.ones(2, 40), atol=1e-5)
+    # Near and far queries: far ones fall through to the wider candidate stages.
+    pts = torch.cat([pts, pts[:, :10] + torch.randn(2, 10, 3, generator=g) * 0.3], dim=1)
+    dist, fid, bary = closest_point_on_mesh(pts, verts, low.faces, max_elements=60_000, candidates=(2, 8))
+    assert (bary >= -1e-6).all() and torch.allclose(bary.sum(-1), torch.ones(2, 50), atol=1e-5)
     # Brute force over every face with the same exact triangle routine, no chunking.
     tri = verts[:, low.faces]  # (B, F, 3, 3)
     q = pts[:, :, None, :]
