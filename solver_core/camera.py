@@ -84,16 +84,18 @@ def place_camera(
     """A static camera that keeps a moving person in view, roughly horizontal and upright.
 
     pelvis_path: (F, 3) world pelvis positions.  azimuth_rad: the camera's viewing direction
-    as a turn about the up axis; at 0 it looks along world +Y (Z-up world) or world -Z (Y-up
-    world), i.e. it sees the front of a subject at heading 0.  The distance is the smallest
-    that keeps the whole path plus the body inside the frame with a margin.
+    as a turn about the up axis from the level camera the solver assumes (OpenCV axes
+    mapped to world x, -up, forward; forward = world +Y for a Z-up world, +Z for a Y-up
+    world, see ``prior_preparation.camera_to_world_rotation``).  So the azimuth IS the yaw
+    offset between the video prior and the world.  The distance is the smallest that keeps
+    the whole path plus the body inside the frame with a margin.
     """
     from .motions import heading_rotation, up_index
 
     ui = up_index(up_axis)
     up = np.zeros(3)
     up[ui] = 1.0
-    fwd0 = np.array([0.0, 1.0, 0.0]) if up_axis == "+z" else np.array([0.0, 0.0, -1.0])
+    fwd0 = np.array([0.0, 1.0, 0.0]) if up_axis == "+z" else np.array([0.0, 0.0, 1.0])
     fwd = heading_rotation(np.array(azimuth_rad), up_axis) @ fwd0
     path = np.asarray(pelvis_path, dtype=np.float64)
     centre = 0.5 * (path.min(0) + path.max(0))
