@@ -33,7 +33,8 @@ def _load_model(name: str, what: str):
         raise UserError(f"{what}: cannot load body model {name!r} ({exc})") from None
 
 
-def evaluate_paths(pred_path: Path, gt_path: Path, markers_path: Path | None = None, part: str | None = None) -> dict:
+def evaluate_paths(pred_path: Path, gt_path: Path, markers_path: Path | None = None, part: str | None = None,
+                   with_gt_m2s: bool = True) -> dict:
     """Metrics for OUT.npz vs gt.npz (+ the session's marker file for m2s)."""
     from uuomocap.protocol.markerio import MarkerFileError, read_markers
     from uuomocap.protocol.session import SessionError, read_npz, validate_gt
@@ -67,7 +68,7 @@ def evaluate_paths(pred_path: Path, gt_path: Path, markers_path: Path | None = N
     if part is None and "part" in gt:
         part = str(gt["part"]) or None
     try:
-        res = evaluate(pred, gt, model, pred_model, markers=markers, part=part)
+        res = evaluate(pred, gt, model, pred_model, markers=markers, part=part, with_gt_m2s=with_gt_m2s)
     except ValueError as exc:
         raise UserError(f"{pred_path}: {exc}") from None
     res["method"] = str(pred["method"]) if "method" in pred else ""

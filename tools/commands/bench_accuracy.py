@@ -1,0 +1,288 @@
+"""``uuomocap bench accuracy``: run every method on the same generated sessions, print the
+paper-style tables (rows = methods; m2s / MPJPE / MPJVE / V2V per scenario) and write JSON.
+
+Sessions are generated deterministically from seeds into a cache directory (reused while
+the generator version and configuration are unchanged); method outputs are recomputed on
+every run.  Scenarios of the ``full`` suite follow the paper: random layouts of 20/30/40/50
+markers (nested per seed) x seeds x motions (appendix "Synthetic Marker Placement"), the
+three partial-body parts of Table 2 (left leg, right arm, left shoulder), and occlusion
+0 / 0.2 % / 1 % with 10-frame hides (appendix "Marker Tracking Loss").  Like the paper,
+markers run at 30 Hz.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import sys
+import time
+import traceback
+from dataclasses import asdict, replace
+from pathlib import Path
+
+import numpy as np
+
+from uuomocap.commands import UserError
+
+FULL_MOTIONS = ("walk", "jump", "arms")
+PARTS = ("left_leg", "right_arm", "left_shoulder")
+PART_MARKERS = 12
+MARKER_COUNTS = (20, 30, 40, 50)
+OCCLUSIONS = (0.0, 0.002, 0.01)
+# Columns per table: (metric key, header).  Partial tables show the part's joints.
+FULL_COLUMNS = (("m2s", "m2s"), ("mpjpe", "MPJPE"), ("mpjve", "MPJVE"), ("v2v", "V2V"))
+PART_COLUMNS = (("m2s", "m2s"), ("part_mpjpe", "MPJPE"), ("part_mpjve", "MPJVE"), ("part_found", "found%"))
+
+
+def default_cache() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "uuomocap" / "bench"
+
+
+def suite_scenarios(suite: str, seeds: int | None, motions: tuple[str, ...] | None, video: bool):
+    """-> list of (table, scenario, [SampleConfig...])."""
+    from uuomocap.synth import SampleConfig
+
+    base = SampleConfig(rate_hz=30.0, duration_s=8.0, video=video, video_size=(320, 240))
+    if suite == "smoke":
+        base = replace(base, duration_s=2.5)
+        return [
+            ("smoke", "walk 40", [replace(base, motion="walk", n_markers=40, seed=0)]),
+            ("smoke", "jump 30 occl 1%", [replace(base, motion="jump", n_markers=30, occlusion=0.01, seed=1)]),
+        ]
+    if suite != "full":
+        raise UserError(f"unknown suite {suite!r}; use smoke or full")
+    n_seeds = 10 if seeds is None else seeds
+    mots = motions or FULL_MOTIONS
+    grid = [(m, s) for m in mots for s in range(n_seeds)]
+    out = []
+    for n in MARKER_COUNTS:
+        out.append(("marker count", f"{n} markers", [replace(base, motion=m, seed=s, n_markers=n) for m, s in grid]))
+    for part in PARTS:
+        out.append(("partial body", part, [replace(base, motion=m, seed=s, part=part, n_markers=PART_MARKERS)
+                                           for m, s in grid]))
+    for p in OCCLUSIONS:
+        out.append(("occlusion (40 markers)", f"occl {100 * p:g}%",
+                    [replace(base, motion=m, seed=s, n_markers=40, occlusion=p) for m, s in grid]))
+    return out
+
+
+def session_key(cfg) -> str:
+    from uuomocap.synth import GENERATOR_VERSION
+
+    blob = json.dumps({"v": GENERATOR_VERSION, **asdict(cfg)}, sort_keys=True, default=str)
+    h = hashlib.sha1(blob.encode()).hexdigest()[:10]
+    part = f"-{cfg.part}" if cfg.part else ""
+    return f"{cfg.motion}-n{cfg.n_markers}{part}-o{cfg.occlusion:g}-s{cfg.seed}-{h}"
+
+
+def ensure_session(cache: Path, cfg) -> Path:
+    """Generate the session unless the cache already holds it (session.yaml is written last)."""
+    from uuomocap.synth import make_session
+
+    d = cache / "sessions" / session_key(cfg)
+    if (d / "session.yaml").is_file():
+        return d
+    tmp = d.with_name(d.name + ".tmp")
+    if tmp.exists():
+        import shutil
+
+        shutil.rmtree(tmp)
+    make_session(tmp, cfg)
+    tmp.rename(d)
+    return d
+
+
+def _mean(values) -> float:
+    v = [float(x) for x in values if x is not None and not (isinstance(x, float) and math.isnan(x))]
+    return float(np.mean(v)) if v else float("nan")
+
+
+def summarise(runs: list[dict]) -> dict:
+    """summary[method][scenario] = {metric: mean, 'sessions': n, 'failed': k, 'seconds': mean}."""
+    out: dict = {}
+    for r in runs:
+        out.setdefault(r["method"], {}).setdefault(r["scenario"], []).append(r)
+    summary: dict = {}
+    for method, scen in out.items():
+        summary[method] = {}
+        for name, rs in scen.items():
+            ok = [r for r in rs if r.get("metrics")]
+            keys = sorted({k for r in ok for k, v in r["metrics"].items() if isinstance(v, (int, float, bool))})
+            agg = {k: _mean([r["metrics"].get(k) for r in ok]) for k in keys if k not in ("frames", "rate_hz", "markers")}
+            if "part_found" in agg:
+                agg["part_found"] = 100.0 * agg["part_found"]
+            agg["sessions"] = len(rs)
+            agg["failed"] = len(rs) - len(ok)
+            agg["seconds"] = _mean([r.get("seconds") for r in ok])
+            summary[method][name] = agg
+    return summary
+
+
+def format_tables(summary: dict, layout: list[tuple[str, str]], methods: list[str]) -> str:
+    """Paper-style tables: one per table group, rows = methods, 4 columns per scenario."""
+    lines = []
+    tables: dict[str, list[str]] = {}
+    for table, scen in layout:
+        tables.setdefault(table, [])
+        if scen not in tables[table]:
+            tables[table].append(scen)
+    for table, scens in tables.items():
+        partial = table == "partial body"
+        cols = PART_COLUMNS if partial else FULL_COLUMNS
+        width = 8 * len(cols) + 1
+        head1 = f"{'':<16}" + "".join(f"|{s:^{width - 1}}" for s in scens) + "|"
+        head2 = f"{'method':<16}" + "".join("|" + "".join(f"{h:>8}" for _, h in cols) for _ in scens) + "|"
+        lines += [f"{table}  (mm, MPJVE mm/s{'; part joints, found% = markers on the right part' if partial else ''})",
+                  head1, head2, "-" * len(head2)]
+        for m in methods:
+            row = f"{m:<16}"
+            for s in scens:
+                agg = summary.get(m, {}).get(s, {})
+                cells = ""
+                for key, _ in cols:
+                    v = agg.get(key, float("nan"))
+                    cells += f"{v:8.1f}" if isinstance(v, float) and not math.isnan(v) else f"{'-':>8}"
+                if agg.get("failed"):
+                    cells = cells[:-1] + "!"
+                row += "|" + cells
+            lines.append(row + "|")
+        lines.append("")
+    fails = [(m, s, a["failed"], a["sessions"]) for m, ss in summary.items() for s, a in ss.items() if a.get("failed")]
+    for m, s, k, n in fails:
+        lines.append(f"! {m} failed on {k}/{n} sessions of {s}")
+    times = {m: _mean([a["seconds"] for a in ss.values()]) for m, ss in summary.items()}
+    lines.append("mean seconds per session: " + ", ".join(f"{m} {t:.1f}" for m, t in times.items()))
+    return "\n".join(lines)
+
+
+def run_bench(args) -> dict:
+    from tqdm import tqdm
+
+    from uuomocap.commands.eval import evaluate_paths
+    from uuomocap.methods import METHODS
+
+    if args.methods:
+        methods = [m for item in args.methods for m in item.split(",") if m]
+        unknown = [m for m in methods if m not in METHODS]
+        if unknown:
+            raise UserError(f"unknown method(s) {', '.join(unknown)}; registered: {', '.join(sorted(METHODS)) or 'none'}")
+    else:
+        methods = sorted(METHODS)
+    if not methods:
+        raise UserError("no methods are registered")
+    motions = tuple(m for item in (args.motions or []) for m in item.split(",") if m) or None
+    scenarios = suite_scenarios(args.suite, args.seeds, motions, args.video)
+    cache = Path(args.cache) if args.cache else default_cache()
+    cache.mkdir(parents=True, exist_ok=True)
+
+    # Unique sessions (occlusion 0 at 40 markers is the same session as "40 markers").
+    jobs = [(table, scen, cfg) for table, scen, cfgs in scenarios for cfg in cfgs]
+    unique = {session_key(cfg): cfg for _, _, cfg in jobs}
+    total = len(unique) + len(unique) * len(methods)
+    bar = tqdm(total=total, desc=f"bench {args.suite}", unit="job", file=sys.stderr, disable=args.quiet)
+    session_dirs: dict[str, Path] = {}
+    t0 = time.perf_counter()
+    for key, cfg in unique.items():
+        bar.set_postfix_str(f"generate {key[:28]}")
+        try:
+            session_dirs[key] = ensure_session(cache, cfg)
+        except (ValueError, OSError) as exc:
+            bar.close()
+            raise UserError(f"generating session {key}: {exc}") from None
+        bar.update(1)
+    gen_seconds = time.perf_counter() - t0
+
+    results: dict[tuple[str, str], dict] = {}
+    gt_m2s: dict[str, float] = {}
+    for key, sdir in session_dirs.items():
+        for method in methods:
+            bar.set_postfix_str(f"{method} {key[:24]}")
+            out = cache / "outputs" / key / f"{method}.npz"
+            out.parent.mkdir(parents=True, exist_ok=True)
+            if out.exists():
+                out.unlink()
+            rec: dict = {"method": method, "session": key}
+            ts = time.perf_counter()
+            try:
+                info = METHODS[method](sdir, out, unique[key].body_model)
+                rec["seconds"] = time.perf_counter() - ts
+                rec["info"] = info if isinstance(info, dict) else {}
+                metrics = evaluate_paths(out, sdir / "gt.npz", sdir / "markers.c3d", with_gt_m2s=key not in gt_m2s)
+                if "m2s_gt" in metrics:
+                    gt_m2s[key] = metrics["m2s_gt"]
+                metrics["m2s_gt"] = gt_m2s.get(key, float("nan"))
+                rec["metrics"] = metrics
+            except KeyboardInterrupt:
+                raise
+            except UserError as exc:
+                rec["error"] = f"evaluation: {exc}"
+            except Exception as exc:  # a failing method must not stop the benchmark
+                rec["error"] = f"{type(exc).__name__}: {exc}"
+                rec["traceback"] = traceback.format_exc(limit=6)
+            results[(method, key)] = rec
+            bar.update(1)
+    bar.close()
+
+    runs = []
+    for table, scen, cfg in jobs:
+        key = session_key(cfg)
+        for method in methods:
+            runs.append({**results[(method, key)], "table": table, "scenario": scen})
+    summary = summarise(runs)
+    layout = [(t, s) for t, s, _ in scenarios]
+    return {
+        "suite": args.suite,
+        "methods": methods,
+        "cache": str(cache),
+        "sessions": {k: {"dir": str(d), "config": asdict(unique[k]), "m2s_gt": gt_m2s.get(k)} for k, d in session_dirs.items()},
+        "generate_seconds": round(gen_seconds, 2),
+        "total_seconds": round(time.perf_counter() - t0, 2),
+        "scenarios": [{"table": t, "scenario": s, "sessions": len(c)} for t, s, c in scenarios],
+        "summary": summary,
+        "runs": runs,
+        "table": format_tables(summary, layout, methods),
+    }
+
+
+def _handler(args) -> int:
+    res = run_bench(args)
+    if args.json:
+        path = Path(args.json)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        from uuomocap.commands import _jsonable
+
+        path.write_text(json.dumps(_jsonable(res), indent=1, allow_nan=True) + "\n", encoding="utf-8")
+    print(res["table"])
+    ref = [v["m2s_gt"] for v in res["sessions"].values() if v.get("m2s_gt") is not None]
+    if ref:
+        print(f"ground truth m2s (markers 9.5 mm off the skin): {np.mean(ref):.2f} mm; "
+              f"{len(res['sessions'])} sessions (generation {res['generate_seconds']} s), total {res['total_seconds']} s"
+              + (f"; JSON: {args.json}" if args.json else ""))
+    failed = sum(1 for r in res["runs"] if "error" in r)
+    return 1 if failed and args.strict else 0
+
+
+def register_bench(subparsers) -> None:
+    p = subparsers.add_parser(
+        "accuracy",
+        help="accuracy of every registered method on generated sessions (paper Tables 1/2)",
+        description=(
+            "Generate sessions deterministically from seeds (cached), run each method on the same inputs, "
+            "evaluate (m2s, MPJPE, MPJVE, V2V; partial-body: the part's joints and whether the part was found) "
+            "and print paper-style tables.  Suites: smoke (2 short sessions, < 2 min) and full (20/30/40/50 "
+            "markers x seeds x motions; left leg / right arm / left shoulder; occlusion 0/0.2/1 %)."),
+    )
+    p.add_argument("--suite", choices=("smoke", "full"), default="smoke")
+    p.add_argument("--methods", action="append", metavar="M[,M...]", help="methods to run (default: all registered)")
+    p.add_argument("--seeds", type=int, default=None, help="seeds per scenario in the full suite (default 10)")
+    p.add_argument("--motions", action="append", metavar="M[,M...]",
+                   help=f"motions of the full suite (default {','.join(FULL_MOTIONS)})")
+    p.add_argument("--video", action="store_true", help="also render video.mp4 (for methods that run the video estimator)")
+    p.add_argument("--cache", metavar="DIR", help=f"session cache (default {default_cache()})")
+    p.add_argument("--json", metavar="FILE", help="write all results as JSON")
+    p.add_argument("--strict", action="store_true", help="exit 1 when any method fails on any session")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_handler)
