@@ -331,3 +331,25 @@ def test_sample_make_from_bvh_and_structured_layout(tmp_path, capsys):
         assert info["frames"] == 30 and info["real_markers"] == 39 and info["motion"] == "cmu_131_01.bvh"
     assert main(["sample", "make", str(tmp_path / "x"), "--motion", "nope", "--quiet"]) == 2
     assert "neither a procedural motion" in capsys.readouterr().err
+
+
+def test_amass_npz_motion_source(tmp_path, model):
+    from uuomocap.solver_core.motions import load_amass_npz, make_procedural_motion
+    from uuomocap.synth import SampleConfig, build_motion
+
+    src = make_procedural_motion("arms", model, np.zeros(16), 2.0, 120.0, seed=0)
+    poses = np.zeros((src.num_frames, 156))            # SMPL-H layout: 52 joints
+    poses[:, :66] = src.poses[:, :66]
+    path = tmp_path / "clip_poses.npz"
+    np.savez(path, poses=poses, trans=src.trans + [0.5, 0.0, 0.3], betas=np.zeros(16), mocap_framerate=120.0,
+             gender="neutral")
+    m = load_amass_npz(path)
+    assert m.rate_hz == 120.0 and m.poses.shape == (240, 72) and np.allclose(m.poses[:, 66:], 0)
+    placed = build_motion(SampleConfig(motion=str(path), duration_s=1.0, rate_hz=30.0), model, np.zeros(16))
+    assert placed.num_frames == 30 and placed.rate_hz == 30.0
+    # Back on the floor and centred, whatever the file's offset was.
+    assert abs(placed.trans[:, 2].mean() - src.trans[:, 2].mean()) < 0.02
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, poses=np.zeros((3, 72)))
+    with pytest.raises(ValueError, match="missing trans"):
+        load_amass_npz(bad)
