@@ -441,6 +441,10 @@ def test_sigkill_recorder_then_launcher_leaves_readable_file_and_no_process(tmp_
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(30)
         poll(lambda: not any(alive(p) for p in pids) and not group_members(info["pgid"]), "every graph process to die", timeout=30)
+        from uuomocap.launcher import find_running_graphs
+
+        assert all(g["name"] != f"record_markers-{proc.pid}" for g in find_running_graphs())
+        assert not (runtime_root() / f"record_markers-{proc.pid}").exists()  # the stale runtime dir was swept
     finally:
         if proc.poll() is None:
             proc.kill()

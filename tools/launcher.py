@@ -204,7 +204,7 @@ def resolve_launch_path(path: str | Path) -> Path:
     p = Path(path)
     if p.is_file():
         return p.resolve()
-    for cand in (LAUNCH_DIR / p, LAUNCH_DIR / f"{p}.yaml"):
+    for cand in (LAUNCH_DIR / p, LAUNCH_DIR / f"{p}.yaml", LAUNCH_DIR / p.name):
         if cand.is_file():
             return cand
     raise LaunchError(f"launch file {str(path)!r} not found (shipped: {', '.join(sorted(f.stem for f in LAUNCH_DIR.glob('*.yaml')))})")
@@ -721,14 +721,26 @@ def launch(path: str | Path, cli_args: dict[str, Any] | None = None, *, log_dir=
     return launcher.supervise(timeout_s)
 
 
+def _is_launcher(pid: int) -> bool:
+    """The process exists and is a uuomocap launcher (not a reused pid)."""
+    try:
+        cmd = Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return False
+    return b"uuomocap" in cmd
+
+
 def find_running_graphs() -> list[dict]:
-    """graph.json of every graph whose launcher is alive."""
+    """graph.json of every graph whose launcher is alive; removes runtime dirs left by killed launchers."""
     out = []
     for f in runtime_root().glob("*/graph.json"):
         try:
             info = json.loads(f.read_text())
-            os.kill(int(info["launcher_pid"]), 0)
-        except (OSError, ValueError, KeyError):
+            pid = int(info["launcher_pid"])
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        if not _is_launcher(pid):
+            shutil.rmtree(f.parent, ignore_errors=True)  # its launcher was killed (SIGKILL): stale
             continue
         info["runtime_dir"] = str(f.parent)
         info["_mtime"] = f.stat().st_mtime
