@@ -21,7 +21,7 @@ from .base import Node, Pacer
 
 @dataclass(frozen=True)
 class MarkerReplayConfig:
-    file: str  # .c3d / .trc / .mcap
+    file: str  # .c3d / .trc / .mcap, or a session directory (session.yaml names the file, may override the up axis)
     speed: float = 1.0  # x real time (ignored in lockstep)
     loop: bool = False
     start_offset_s: float = 0.0
@@ -33,8 +33,8 @@ class MarkerReplayConfig:
     send_labels: bool = False  # carry the file's labels (the stream is unlabeled by design)
 
     def __post_init__(self):
-        if not Path(self.file).is_file():
-            raise ValueError(f"parameter 'file': no such marker file {self.file!r}")
+        if not Path(self.file).exists():
+            raise ValueError(f"parameter 'file': no such marker file or session directory {self.file!r}")
         if not self.speed > 0:
             raise ValueError(f"parameter 'speed' must be > 0, got {self.speed}")
         if self.start_offset_s < 0 or self.window < 1 or self.max_frames < 0:
@@ -49,9 +49,15 @@ class MarkerReplay(Node):
 
     def setup(self) -> None:
         from uuomocap.protocol.markerio import read_markers
+        from uuomocap.protocol.session import load_session
 
         c = self.config
-        md = read_markers(c.file)
+        if Path(c.file).is_dir():
+            session = load_session(c.file, load_prior=False, load_gt=False)
+            md, up_axis = session.markers, session.up_axis
+        else:
+            md = read_markers(c.file)
+            up_axis = md.up_axis
         self.rate = float(md.rate_hz)
         self.positions = np.ascontiguousarray(md.positions, dtype=np.float32)
         self.visible = np.ascontiguousarray(md.visible, dtype=bool)
@@ -59,7 +65,7 @@ class MarkerReplay(Node):
         self.stamps = np.asarray(md.stamps_ns, dtype=np.int64)
         self.track_ids = np.arange(md.n_markers, dtype=np.int32)
         self.labels = list(md.labels) if c.send_labels else []
-        self.up_axis, self.source, self.first_frame = md.up_axis, Path(md.source).name, md.first_frame
+        self.up_axis, self.source, self.first_frame = up_axis, Path(md.source).name, md.first_frame
         self.start = min(int(round(c.start_offset_s * self.rate)), md.n_frames)
         self.end = md.n_frames if not c.max_frames else min(md.n_frames, self.start + c.max_frames)
         self.period_ns = int(round(1e9 / self.rate))
