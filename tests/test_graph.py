@@ -212,6 +212,11 @@ def test_substitutions_includes_conditions_and_flow_order(tmp_path):
     g = validate(load_launch(outer, {"cap": str(cap), "relay": False}))
     assert [n.spec.name for n in g.nodes] == ["replay", "rec"]
 
+    from uuomocap.cli import main as cli
+
+    assert cli(["launch", str(outer), f"cap:={cap}", "--check", "--json"]) == 0
+    assert cli(["launch", "record_markers", "--check"]) == 2  # required argument missing: one-line error
+
 
 def test_shipped_session_graphs_name_missing_plugins(tmp_path):
     session = tmp_path / "session"

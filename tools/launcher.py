@@ -52,11 +52,12 @@ from typing import Any
 
 import yaml
 
+import uuomocap.launch as uuomocap_launch
 from uuomocap.nodes.base import Node, Port, PluginError, load_plugin
 from uuomocap.nodes.config import ConfigError
 from uuomocap.protocol.transport import Endpoints, endpoint_in_use, runtime_root
 
-LAUNCH_DIR = Path(__file__).resolve().parent.parent / "launch"
+LAUNCH_DIR = Path(uuomocap_launch.__file__).resolve().parent  # the shipped launch files (package uuomocap.launch)
 NODE_NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_\-]{0,63}$")
 TOPIC_RE = re.compile(r"^[a-z0-9_\-]+(/[a-z0-9_\-]+)*$")
 SUBST_RE = re.compile(r"\$\((\w[\w-]*)((?:\s+[^()$]*)?)\)")
