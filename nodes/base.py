@@ -258,10 +258,12 @@ class Node:
     def acked(self, node: str, topic: str) -> tuple[int, int, bool] | None:
         return self._acks.get((node, topic))
 
-    def wait_for_credit(self, port: str, seq: int, stamp_ns: int, ack_from: list[str], window: int, timeout_s: float) -> bool:
+    def wait_for_credit(self, port: str, seq: int, stamp_ns: int, ack_from: list[str], window: int, timeout_s: float,
+                        require_eos: bool = False) -> bool:
         """Block (while serving the sockets) until every entry of ``ack_from`` allows message ``seq``.
 
-        'node': node has acknowledged our message seq - window on this port's topic.
+        'node': node has acknowledged our message seq - window on this port's topic (with
+                require_eos: it has also handled our EndOfStream, i.e. finished its on_eos).
         'node:topic': node has acknowledged a message on topic with stamp >= stamp_ns, or its end.
         Returns False on stop or timeout (counted as ack_timeouts, logged).
         """
@@ -278,6 +280,8 @@ class Node:
                 else:
                     a = self._acks.get((node, topic))
                     if seq - window >= 0 and (a is None or a[0] < seq - window):
+                        return False
+                    if require_eos and (a is None or not a[2]):
                         return False
             return True
 

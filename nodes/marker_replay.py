@@ -111,11 +111,11 @@ class MarkerReplay(Node):
         return True
 
     def finish(self) -> bool:
-        """Tell consumers the stream ended, and wait until the credit nodes have consumed it all."""
+        """Tell consumers the stream ended, and wait until the credit nodes have handled its end."""
         c = self.config
         self.end_stream("markers")
         if c.ack_from and self.last_seq >= 0:
             last_stamp = int(self.stamps[self.end - 1]) + self.loop_offset_ns
-            self.wait_for_credit("markers", self.last_seq + 1, last_stamp, c.ack_from, 1, c.ack_timeout_s)
+            self.wait_for_credit("markers", self.last_seq + 1, last_stamp, c.ack_from, 1, c.ack_timeout_s, require_eos=True)
         self.log.info("replay finished: %d frames published", self.last_seq + 1)
         return False

@@ -72,6 +72,10 @@ class Play(Node):
                 return True
             for port in self.outputs:
                 self.end_stream(port)
+            for port, topic in self.outputs.items():  # wait until the credit nodes handled every end
+                consumers = [e for e in c.ack_from if ":" not in e and self.acked(e, topic) is not None]
+                if consumers:
+                    self.wait_for_credit(port, 0, 0, consumers, 1, c.ack_timeout_s, require_eos=True)
             return False
         try:
             env = rec.decode()
