@@ -79,7 +79,7 @@ class Viewer(Node):
             parts.append(f"markers #{m.frame_index} {int(m.visible.sum())}/{len(m.visible)} seen, {self.latency_ms['markers']:.1f} ms")
         if s is not None:
             parts.append(f"solved #{s.frame_index} {s.kind} residual {s.residual_m * 1000:.1f} mm, {self.latency_ms['solved']:.1f} ms")
-        sup = sum(st.superseded for st in self._sub.stats.values())
+        sup = sum(st.superseded for st in self._sub.stats.values()) if self._sub else 0
         parts.append(f"skipped {sup}")
         return " | ".join(parts)
 

@@ -502,3 +502,26 @@ def test_malformed_messages_are_counted_while_the_graph_runs(tmp_path):
     assert replayed == list(range(5 * 60)), "every valid frame recorded despite the garbage"
     assert png.is_file() and png.stat().st_size > 1000
     assert "rejected message on 'markers/raw'" in (proc.logs / "rec.log").read_text()
+
+
+def test_viewer_draws_skeleton_and_markers(tmp_path):
+    import cv2
+
+    from uuomocap.nodes.viewer import Viewer, project
+
+    assert np.allclose(project(np.array([[1.0, 2.0, 3.0]]), "+z"), [[1.0, 3.0]])
+    assert np.allclose(project(np.array([[1.0, 2.0, 3.0]]), "+y"), [[1.0, 2.0]])
+    cfg = Viewer.parse_config({"out_png": str(tmp_path / "v.png"), "status": False}, "view")
+    v = Viewer("view", cfg, Runtime(Endpoints.ipc(tmp_path)))
+    v.setup()
+    joints = np.zeros((24, 3), np.float32)
+    joints[:, 2] = np.linspace(0.1, 1.7, 24)  # a vertical "body"
+    v.solved = SolvedFrame(stamp_ns=0, frame_index=0, kind="estimate", betas=np.zeros(10, np.float32), poses=np.zeros(72, np.float32),
+                           trans=np.zeros(3, np.float32), joints=joints)
+    v.markers = MarkerFrame(stamp_ns=0, frame_index=0, positions=joints[:5] + 0.05, visible=np.ones(5, bool))
+    v.draw(str(tmp_path / "v.png"))
+    img = cv2.imread(str(tmp_path / "v.png"))
+    assert img.shape == (480, 480, 3)
+    red = (img[:, :, 2] > 150) & (img[:, :, 0] < 100) & (img[:, :, 1] < 100)
+    green = (img[:, :, 1] > 100) & (img[:, :, 0] < 100) & (img[:, :, 2] < 100)
+    assert red.sum() > 20 and green.sum() > 100  # markers drawn as dots, bones as lines
