@@ -37,6 +37,22 @@ def register(subparsers) -> None:
     p.set_defaults(func=cmd_play)
 
 
+def _subscribers_in_graph(info: dict | None, topics) -> dict[str, list[str]]:
+    """{topic: nodes of the running graph that subscribe to it} from its graph.json."""
+    from uuomocap.nodes.base import Port
+
+    out = {}
+    for t in topics:
+        subs = []
+        for n in (info or {}).get("nodes", []):
+            ports = [Port(p) for p in n.get("subscribes", [])]
+            if any(p.topic.rstrip("*") == t[: len(p.topic.rstrip("*"))] if p.is_pattern else p.topic == t for p in ports):
+                subs.append(n["name"])
+        if subs:
+            out[t] = subs
+    return out
+
+
 def _run_node(cls, name: str, params: dict, args, duration: float | None = None):
     from uuomocap.nodes.base import Runtime
     from uuomocap.nodes.config import ConfigError
@@ -46,7 +62,10 @@ def _run_node(cls, name: str, params: dict, args, duration: float | None = None)
         config = cls.parse_config(params, name)
     except ConfigError as exc:
         raise UserError(str(exc)) from None
-    node = cls(name, config, Runtime(endpoints, session=(info or {}).get("session", ""), plugin=name))
+    _, outputs = cls.ports(config)
+    # like a launched node, wait until the graph's subscribers of our topics are connected
+    expect = _subscribers_in_graph(info, outputs.values())
+    node = cls(name, config, Runtime(endpoints, session=(info or {}).get("session", ""), plugin=name, expect=expect, ready_timeout_s=10.0))
     if duration:
         node.DRAIN_ON_STOP_S = 0.0  # a timed recording of a live graph ends at the deadline
     timer = threading.Timer(duration, node.request_stop) if duration else None
