@@ -12,6 +12,9 @@ $(STAMP): pyproject.toml
 	# CPU torch first: an unpinned torch would download a multi-GB CUDA build.
 	$(PY) -m pip install -q torch==2.13.0
 	$(PY) -m pip install -q -e '.[test]'
+	# BlazePose models: fetched once from the mediapipe wheel on PyPI (models only,
+	# sha256-checked) and converted to ONNX by our own converter.
+	$(VENV)/bin/uuomocap prior fetch-models
 	touch $(STAMP)
 
 install: $(STAMP)
