@@ -1,0 +1,859 @@
+"""Near-online sliding-window variant of the staged solver (issue 6).
+
+Three layers, each reusing the offline stages (no second copy of any stage):
+
+* **Bootstrap**: once ``bootstrap_s`` of markers is in, the offline staged solver
+  (``staged_solver.solve``: segmentation, part matching, yaw hypotheses, Stages 2-5) runs on that
+  window, decimated to ``bootstrap_rate_hz`` (the paper's 30 Hz; neighbouring 120 Hz frames add
+  cost, not information).  Shape, yaw and the marker-surface correspondence are then locked.
+* **Estimate** (causal, every frame): Gauss-Newton / Levenberg-Marquardt on the Stage-4 energy of
+  ``inverse_kinematics`` for the newest frame only: 3-vector marker residuals with the same offset
+  model as the offline IK (surface point + 9.5 mm along the posed normal, or the paper's distance
+  model), the pose prior (Stage 4 weight), warm-started from the previous frame.  The Jacobian is
+  analytic from ONE forward pass of the body model (skinning transforms at the joints; linear
+  blend skinning has no pose blend shapes in the open models, so it is exact there and a
+  Gauss-Newton approximation for SMPL files with pose correctives).
+* **Refined** (fixed lag): the same energy over a window of the not-yet-final frames plus a few
+  already-final context frames, with the offline IK's temporal-smoothness term (joint
+  accelerations), solved by banded Gauss-Newton (the smoothness couples only neighbouring frames,
+  so the normal equations are block-banded), warm-started from the previous pass.  Frames that
+  leave the lag are published as ``refined``.
+
+Change handling: occluded markers keep their correspondence (they just drop out of the residual);
+a marker index that was never assigned (or whose track id changes) is assigned to the surface
+point that fits it best (Stage 3, ``find_marker_surface_points``) on the recent frames once it has
+been seen for ``new_track_frames``; a marker whose residual stays above ``slip_threshold_m`` is
+re-assigned the same way; when the whole fit degrades (mean residual above
+``degrade_threshold_m`` for ``degrade_s``, or most visible markers unassigned: a new subject) the
+solver re-bootstraps on the next window while it keeps estimating; every ``recheck_period_s`` the
+correspondence of all markers is re-checked on the recent window.
+
+Memory is bounded: every buffer is a ring (``collections.deque(maxlen=...)``) sized from the
+config and the rate, nothing grows with the take.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import torch
+from threadpoolctl import threadpool_limits
+
+from uuomocap.solver_core import lbs
+from uuomocap.solver_core.body_params import (
+    BodyParams,
+    MarkerAttachment,
+    interpolate_params,
+    pose_matrices,
+    up_tensor,
+)
+from uuomocap.solver_core.inverse_kinematics import InverseKinematicsConfig
+from uuomocap.solver_core.marker_surface_correspondence import find_marker_surface_points
+from uuomocap.solver_core.optimization import LBFGSConfig
+from uuomocap.solver_core.prior_preparation import (
+    BodyPrior,
+    camera_to_world_rotation,
+    neutral_prior,
+    prepare_prior,
+)
+from uuomocap.solver_core.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from uuomocap.solver_core.staged_solver import SolverConfig, marker_part_names, part_vertex_ids, solve
+
+N_POSE = 72  # root (before the yaw) + 23 body joints, axis-angle
+N_PARAMS = N_POSE + 3  # + translation
+
+
+def fast_bootstrap_config() -> SolverConfig:
+    """The offline solver with budgets for a 2-3 s window (beyond the paper: speed).  Same stages,
+    fewer L-BFGS iterations and frames (the window is short and re-solved continuously later)."""
+    c = SolverConfig()
+    return replace(
+        c,
+        screening_frames=20,
+        chamfer_frames=60,
+        pose_fitting=replace(c.pose_fitting, lbfgs=replace(c.pose_fitting.lbfgs, max_iterations=40)),
+        ik=replace(c.ik, lbfgs=replace(c.ik.lbfgs, max_iterations=40)),
+        matching=replace(c.matching, lbfgs=replace(c.matching.lbfgs, max_iterations=40), frames=24),
+    )
+
+
+@dataclass(frozen=True)
+class WindowedSolverConfig:
+    # Issue 6 "Bootstrap": seconds of markers (+ prior) the offline solver runs on.
+    bootstrap_s: float = 2.5
+    # Beyond the paper (speed): the bootstrap window is decimated to this rate (paper: 30 Hz markers).
+    bootstrap_rate_hz: float = 30.0
+    # The offline staged solver used for (re-)bootstraps.
+    bootstrap_solver: SolverConfig = field(default_factory=fast_bootstrap_config)
+    # Energy terms shared with the offline Stage 4 (paper: lambda_M 1, lambda_Theta 0.1, delta 9.5 mm).
+    ik: InverseKinematicsConfig = InverseKinematicsConfig()
+    # Issue 6 "Steady state": Gauss-Newton iterations of the per-frame estimate.
+    estimate_iterations: int = 2
+    # Warm start the estimate by constant-velocity extrapolation of the previous two frames.
+    extrapolate: bool = False
+    # Levenberg-Marquardt damping (relative to the diagonal of the normal equations).
+    damping: float = 1e-3
+    # Issue 6: fixed lag (frames) after which a frame is final ("refined").
+    lag_frames: int = 10
+    # Frames finalised per smoothing pass (the pass runs every hop frames).
+    hop_frames: int = 5
+    # Already-final frames kept fixed at the start of each smoothing window (continuity).
+    context_frames: int = 2
+    # Gauss-Newton iterations per smoothing pass (warm-started from the previous pass).
+    refine_iterations: int = 1
+    # Joint-acceleration weight of the smoothing pass (the offline IK's smoothness term,
+    # at ik.smoothness_reference_hz; beyond the paper).
+    smoothness_weight: float = 1.0
+    # Conjugate-gradient iterations per smoothing step (block-preconditioned; converges in ~10).
+    cg_iterations: int = 25
+    # Change handling (issue 6): an unassigned marker seen this many frames gets a surface point.
+    new_track_frames: int = 10
+    # A marker whose residual exceeds this for slip_frames visible frames is re-assigned.
+    slip_threshold_m: float = 0.03
+    slip_frames: int = 15
+    # Mean residual above this for degrade_s seconds -> re-bootstrap.
+    degrade_threshold_m: float = 0.04
+    degrade_s: float = 1.0
+    # Periodic correspondence re-check on the recent window (0 = never).
+    recheck_period_s: float = 2.0
+    recheck_frames: int = 48
+    # A re-checked point replaces the current one when its mean distance is this much smaller.
+    recheck_improvement_m: float = 0.003
+    # Ring sizes: recent frames kept for re-assignment (frames), priors kept (messages).
+    history_frames: int = 64
+    prior_buffer: int = 512
+
+    def __post_init__(self):
+        if self.bootstrap_s <= 0 or self.lag_frames < 0 or self.hop_frames < 1 or self.context_frames < 0:
+            raise ValueError("bootstrap_s > 0, lag_frames >= 0, hop_frames >= 1, context_frames >= 0 are required")
+        if self.estimate_iterations < 1 or self.refine_iterations < 0:
+            raise ValueError("estimate_iterations >= 1 and refine_iterations >= 0 are required")
+        if self.ik.offset_model not in ("normal", "distance"):
+            raise ValueError(f"ik.offset_model must be 'normal' or 'distance', got {self.ik.offset_model!r}")
+
+
+@dataclass
+class WindowResult:
+    """One solved frame.  poses (72,) world-frame AMASS axis-angle (yaw folded into the root);
+    trans (3,), joints (24,3) metres; betas (B,); residual_m: mean distance of the visible assigned
+    markers to their predicted positions; kind 'estimate' or 'refined'."""
+
+    stamp_ns: int
+    frame_index: int
+    kind: str
+    poses: np.ndarray
+    trans: np.ndarray
+    joints: np.ndarray
+    betas: np.ndarray
+    residual_m: float
+    labels_version: int
+
+
+@dataclass
+class MarkerLabelState:
+    """Current marker -> surface assignment.  face_ids (M,) (-1 unassigned), bary (M,3),
+    parts: per marker the dominant joint name ('' unassigned); version increments on change."""
+
+    version: int
+    face_ids: np.ndarray
+    bary: np.ndarray
+    parts: list[str]
+    marker_offset_m: float
+
+
+class _Frame:
+    """Per-frame state shared by the pending window, the context and the history rings."""
+
+    __slots__ = ("stamp", "index", "markers", "visible", "theta", "trans", "prior", "prior_weight", "residual", "joints")
+
+    def __init__(self, stamp, index, markers, visible):
+        self.stamp = int(stamp)
+        self.index = int(index)
+        self.markers = markers
+        self.visible = visible
+        self.theta = np.zeros(N_POSE)
+        self.trans = np.zeros(3)
+        self.prior = np.zeros(N_POSE)
+        self.prior_weight = 1.0
+        self.residual = math.nan
+        self.joints = None
+
+
+def _skew_cross_columns(c: np.ndarray, rot: np.ndarray) -> np.ndarray:
+    """-[c]x R for broadcastable c (...,3) and R (...,3,3): d(omega x c)/d(local rotation)."""
+    cols = np.swapaxes(rot, -1, -2)  # rows = columns of R
+    return -np.swapaxes(np.cross(c[..., None, :], cols), -1, -2)
+
+
+def wrap_rotation_vector(aa: np.ndarray) -> np.ndarray:
+    """Same rotations with every axis-angle (...,3) of norm <= pi (additive updates can leave it)."""
+    n = np.linalg.norm(aa, axis=-1, keepdims=True)
+    return np.where(n > math.pi, aa * (n - 2 * math.pi) / np.maximum(n, 1e-12), aa)
+
+
+def nearest_equivalent(aa: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """The representation of rotation ``aa`` (...,3) (itself or the one 2 pi along its axis
+    backwards) nearest to ``ref``: the pose prior compares axis-angle vectors, which must not jump
+    by 2 pi when the root turns past pi."""
+    n = np.linalg.norm(aa, axis=-1, keepdims=True)
+    alt = aa * (n - 2 * math.pi) / np.maximum(n, 1e-12)
+    use = np.linalg.norm(alt - ref, axis=-1, keepdims=True) < np.linalg.norm(aa - ref, axis=-1, keepdims=True)
+    return np.where(use & (n > 1e-6), alt, aa)
+
+
+def right_jacobian_so3(theta: np.ndarray) -> np.ndarray:
+    """Right Jacobian of SO(3) at axis-angle theta (...,3) -> (...,3,3):
+    R(theta + d) ~= R(theta) exp(J_r(theta) d)."""
+    phi = np.linalg.norm(theta, axis=-1)[..., None, None]
+    K = np.zeros(theta.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -theta[..., 2], theta[..., 1], -theta[..., 0]
+    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = theta[..., 2], -theta[..., 1], theta[..., 0]
+    small = phi < 1e-6
+    safe = np.where(small, 1.0, phi)
+    a = np.where(small, 0.5, (1 - np.cos(safe)) / safe**2)
+    b = np.where(small, 1.0 / 6.0, (safe - np.sin(safe)) / safe**3)
+    return np.eye(3) - a * K + b * (K @ K)
+
+
+class WindowedSolver:
+    """Streaming solver: ``add_prior`` / ``add_markers`` in capture order, ``flush`` at the end.
+
+    model: output body model (IK, correspondence); chamfer_model: low-resolution model for the
+    bootstrap's chamfer stages (None = model); up_axis: capture world up ('+z'...); rate_hz:
+    nominal marker rate (None: estimated from the stamps of the bootstrap window).
+    """
+
+    def __init__(self, model, config: WindowedSolverConfig = WindowedSolverConfig(), up_axis: str = "+z",
+                 rate_hz: float | None = None, chamfer_model=None):
+        self.model = model
+        self.chamfer_model = chamfer_model or model
+        self.config = config
+        self.up_axis = up_axis
+        self.up = up_tensor(up_axis)
+        self.rate_hz = rate_hz
+        # The solver multiplies thousands of tiny matrices per second; OpenBLAS's worker threads
+        # make each of them ~100x slower on a busy CPU (measured: 15 ms vs 0.05 ms for a 75x120
+        # product), so BLAS runs single-threaded in this process from here on.
+        threadpool_limits(1, user_api="blas")
+        self.r_wc = camera_to_world_rotation(up_axis)
+        self._priors: deque = deque(maxlen=config.prior_buffer)
+        self.stats: dict = {"frames": 0, "bootstraps": 0, "rebootstraps": 0, "new_tracks": 0, "slips": 0,
+                            "rechecks": 0, "reassigned": 0, "bootstrap_seconds": []}
+        self.timing = {"estimate_s": 0.0, "refine_s": 0.0, "estimates": 0, "refines": 0}
+        # descendants: D[j, k] = 1 when joint k is j or below it
+        parents = model.parents.tolist()
+        J = len(parents)
+        D = np.eye(J)
+        for k in range(J):
+            p = parents[k]
+            while p >= 0:
+                D[p, k] = 1.0
+                p = parents[p]
+        self._desc = D
+        self._one_point = lbs.SurfacePoints.from_vertex_ids(torch.zeros(1, dtype=torch.long))
+        self.reset()
+
+    # ------------------------------------------------------------------ public API
+    def reset(self) -> None:
+        """Forget everything but the priors (a new take / a different marker set)."""
+        c = self.config
+        self.num_markers: int | None = None
+        self.locked = False
+        self.betas = None
+        self.yaw = 0.0
+        self.face_ids = None
+        self.bary = None
+        self.allowed_ids = None
+        self.labels_version = 0
+        self._boot: deque | None = None  # frames collected for a (re-)bootstrap
+        self._pending: deque = deque()  # estimated, not yet final (bounded by lag + hop)
+        self._context: deque = deque(maxlen=max(c.context_frames, 2))
+        self._history: deque = deque(maxlen=c.history_frames)
+        self._index = 0
+        self._track_ids = None
+        self._seen_run = None
+        self._slip_run = None
+        self._degrade_run = 0
+        self._since_recheck = 0
+
+    def add_prior(self, stamp_ns: int, global_orient, body_pose, betas, valid: bool = True, camera_frame: bool = True,
+                  confidence: float = 1.0) -> None:
+        """One video-prior frame on the marker clock.  global_orient (3,) axis-angle (camera frame
+        when camera_frame), body_pose (23,3), betas (B,)."""
+        go = np.asarray(global_orient, dtype=np.float64).reshape(3)
+        bp = np.asarray(body_pose, dtype=np.float64).reshape(23, 3)
+        if self._priors and int(stamp_ns) <= self._priors[-1][0]:
+            return  # stamps must increase; a repeated / late prior is ignored
+        self._priors.append((int(stamp_ns), go, bp, np.asarray(betas, dtype=np.float64).reshape(-1), bool(valid),
+                             bool(camera_frame), float(confidence)))
+
+    def add_markers(self, stamp_ns: int, positions, visible=None, track_ids=None) -> list[WindowResult]:
+        """One capture frame: positions (M,3) metres (NaN where missing), visible (M,) bool or None,
+        track_ids (M,) ints or None (a slot whose id changes is a new marker).  Returns the results
+        that became available (estimates and refined frames, in stamp order per kind)."""
+        results = self.push_markers(stamp_ns, positions, visible, track_ids)
+        results += self.refine_ready()
+        return results
+
+    def push_markers(self, stamp_ns: int, positions, visible=None, track_ids=None) -> list[WindowResult]:
+        """The causal half of ``add_markers``: the estimate(s) only (a node publishes them before
+        running the smoothing pass with ``refine_ready``)."""
+        pos = np.asarray(positions, dtype=np.float64)
+        if pos.ndim != 2 or pos.shape[1] != 3:
+            raise ValueError(f"positions must be (M, 3), got {pos.shape}")
+        vis = np.isfinite(pos).all(axis=1)
+        if visible is not None:
+            vis &= np.asarray(visible, dtype=bool).reshape(-1)
+        if self.num_markers is not None and pos.shape[0] != self.num_markers:
+            # a different marker set: start over (correspondences are per marker index)
+            self.reset()
+        if self.num_markers is None:
+            self.num_markers = pos.shape[0]
+            self._seen_run = np.zeros(pos.shape[0], dtype=np.int64)
+            self._slip_run = np.zeros(pos.shape[0], dtype=np.int64)
+        frame = _Frame(stamp_ns, self._index, np.where(vis[:, None], pos, np.nan), vis)
+        self._index += 1
+        self.stats["frames"] += 1
+        self._handle_track_ids(track_ids)
+        if not self.locked:
+            return self._collect_bootstrap(frame)
+        t0 = time.perf_counter()
+        out = [self._estimate(frame)]
+        self.timing["estimate_s"] += time.perf_counter() - t0
+        self.timing["estimates"] += 1
+        if self._boot is not None:  # a re-bootstrap is collecting while estimates go on
+            self._boot.append(frame)
+            if self._boot_ready():
+                self._bootstrap(list(self._boot), rebootstrap=True)
+        return out
+
+    def refine_ready(self) -> list[WindowResult]:
+        """Run the smoothing pass when a hop of frames has left the lag; returns refined frames."""
+        c = self.config
+        out: list[WindowResult] = []
+        while len(self._pending) >= c.lag_frames + c.hop_frames:
+            out += self._refine(c.hop_frames)
+        return out
+
+    def flush(self) -> list[WindowResult]:
+        """End of stream: bootstrap on what is there if never locked, then finalise every frame."""
+        out: list[WindowResult] = []
+        if not self.locked and self._boot:
+            out += self._bootstrap(list(self._boot), rebootstrap=False)
+        while self._pending:
+            out += self._refine(min(len(self._pending), self.config.lag_frames + self.config.hop_frames), final=True)
+        return out
+
+    @property
+    def labels(self) -> MarkerLabelState | None:
+        if not self.locked:
+            return None
+        att = self._attachment()
+        return MarkerLabelState(self.labels_version, self.face_ids.copy(), self.bary.copy(),
+                                marker_part_names(self.model, att), self.config.ik.marker_offset_m)
+
+    def buffer_sizes(self) -> dict[str, int]:
+        """Lengths of every internal buffer (the memory-bound test watches these)."""
+        return {"priors": len(self._priors), "pending": len(self._pending), "context": len(self._context),
+                "history": len(self._history), "bootstrap": len(self._boot) if self._boot is not None else 0}
+
+    # ------------------------------------------------------------------ bootstrap
+    def _boot_frames_needed(self) -> int:
+        return max(3, int(math.ceil(self.config.bootstrap_s * (self.rate_hz or 120.0))))
+
+    def _boot_ready(self) -> bool:
+        b = self._boot
+        if self.rate_hz is None and len(b) >= 3:
+            dt = np.diff([f.stamp for f in b])
+            if (dt > 0).all():
+                self.rate_hz = float(1e9 / np.median(dt))
+        return len(b) >= self._boot_frames_needed()
+
+    def _collect_bootstrap(self, frame: _Frame) -> list[WindowResult]:
+        if self._boot is None:
+            self._boot = deque(maxlen=max(3, int(math.ceil(self.config.bootstrap_s * 1000.0))))
+        self._boot.append(frame)
+        if self._boot_ready():
+            return self._bootstrap(list(self._boot), rebootstrap=False)
+        return []
+
+    def _prior_window(self, stamps: np.ndarray) -> tuple[BodyPrior, np.ndarray, bool]:
+        """World prior at ``stamps`` from the priors received up to the last stamp (deterministic:
+        later priors are never used), or a neutral upright prior when there is none."""
+        last = int(stamps[-1])
+        rows = [p for p in self._priors if p[0] <= last and p[4]]
+        if not rows:
+            rows = [p for p in self._priors if p[4]][:1]  # a prior slightly after the window beats none
+        if not rows:
+            nb = self.model.num_betas
+            return neutral_prior(len(stamps), self.up_axis, nb, stamps), np.zeros(nb), False
+        nb = min(len(r[3]) for r in rows)
+        cam = BodyPrior(
+            root_orient=np.stack([r[1] for r in rows]),
+            body_pose=np.stack([r[2] for r in rows]),
+            betas_per_frame=np.stack([r[3][:nb] for r in rows]),
+            valid=np.ones(len(rows), dtype=bool),
+            confidence=np.array([r[6] for r in rows]),
+            stamps_ns=np.array([r[0] for r in rows], dtype=np.int64),
+            frame="camera" if rows[-1][5] else "world",
+        )
+        world, shape = prepare_prior(cam, self.up_axis, stamps, 0.0)
+        return world, shape, True
+
+    def _bootstrap(self, frames: list[_Frame], rebootstrap: bool) -> list[WindowResult]:
+        """Offline staged solver on the window; lock shape / yaw / correspondence; estimate every
+        frame of the window (batched) and queue them for refinement."""
+        t0 = time.perf_counter()
+        c = self.config
+        self._boot = None
+        rate = self.rate_hz or 120.0
+        stamps = np.array([f.stamp for f in frames], dtype=np.int64)
+        markers = np.stack([f.markers for f in frames])
+        vis = np.stack([f.visible for f in frames])
+        step = max(1, int(round(rate / c.bootstrap_rate_hz)))
+        sel = np.arange(0, len(frames), step)
+        if not vis[sel].any(axis=0).any():
+            raise ValueError("no marker was visible during the bootstrap window")
+        prior, shape, has_prior = self._prior_window(stamps)
+        sub = BodyPrior(prior.root_orient[sel], prior.body_pose[sel], prior.betas_per_frame[sel], prior.valid[sel],
+                        prior.confidence[sel], prior.stamps_ns[sel], prior.frame)
+        res = solve(markers[sel], vis[sel], rate / step, self.up_axis, sub, shape, self.model, self.chamfer_model,
+                    c.bootstrap_solver)
+        old_yaw = self.yaw
+        self.betas = res.params.betas.detach().clone()
+        self.yaw = float(res.params.yaw)
+        self.face_ids = res.attachment.face_ids.numpy().astype(np.int64).copy()
+        self.bary = res.attachment.bary.double().numpy().copy()
+        diag = res.diagnostics
+        joints = tuple(self.model.joint_names.index(n) for n in diag.get("part_joints", [])) if not diag.get("full_body", True) else ()
+        self.allowed_ids = part_vertex_ids(self.model, joints) if joints else None
+        self.has_prior = has_prior
+        self.labels_version += 1
+        self._prepare_lock()
+        self.locked = True
+        self.stats["bootstraps"] += 1
+        self.stats["rebootstraps"] += int(rebootstrap)
+        self.last_bootstrap = {k: v for k, v in diag.items() if k not in ("cluster_labels",)}
+        self._seen_run[:] = 0
+        self._slip_run[:] = 0
+        self._degrade_run = 0
+        if rebootstrap:
+            # re-express the frames still in flight in the new yaw (their world pose is unchanged)
+            for f in list(self._pending) + list(self._context) + list(self._history):
+                f.theta[:3] = self._reyaw(f.theta[:3], old_yaw, self.yaw)
+            last = frames[-1]
+            full = interpolate_params(res.params, sel, np.arange(len(frames)))
+            last.theta = np.concatenate([full.root_orient[-1].double().numpy(), full.body_pose[-1].double().numpy().reshape(-1)])
+            last.trans = full.trans[-1].double().numpy()
+            self.stats["bootstrap_seconds"].append(round(time.perf_counter() - t0, 3))
+            return []
+        full = interpolate_params(res.params, sel, np.arange(len(frames)))
+        theta = np.concatenate([full.root_orient.double().numpy(), full.body_pose.double().numpy().reshape(len(frames), -1)], 1)
+        trans = full.trans.double().numpy()
+        prior72 = np.concatenate([prior.root_orient, prior.body_pose.reshape(len(frames), -1)], 1)
+        for i, f in enumerate(frames):
+            f.prior = prior72[i] if has_prior else theta[i].copy()
+        theta, trans = self._gauss_newton(theta, trans, markers, vis, prior72 if has_prior else theta.copy(), c.estimate_iterations)
+        out = []
+        lin = self._linearize(theta, trans, markers, vis, jacobian=False)
+        for i, f in enumerate(frames):
+            f.theta, f.trans = theta[i], trans[i]
+            f.residual, f.joints = lin["residual"][i], lin["joints"][i]
+            self._pending.append(f)
+            self._history.append(f)
+            out.append(self._result(f, "estimate", lin["root_world"][i]))
+        self.stats["bootstrap_seconds"].append(round(time.perf_counter() - t0, 3))
+        return out
+
+    def _reyaw(self, root: np.ndarray, old: float, new: float) -> np.ndarray:
+        up = self.up.double()
+        r_old = axis_angle_to_matrix(up * old) @ axis_angle_to_matrix(torch.as_tensor(root))
+        return matrix_to_axis_angle(axis_angle_to_matrix(-up * new) @ r_old).numpy()
+
+    def _attachment(self) -> MarkerAttachment:
+        return MarkerAttachment(torch.as_tensor(self.face_ids), torch.as_tensor(self.bary, dtype=torch.float32),
+                                torch.zeros(len(self.face_ids)))
+
+    def _prepare_lock(self) -> None:
+        """Precompute the rest-pose geometry of the assigned markers for the analytic Jacobian."""
+        m = self.model
+        assigned = np.flatnonzero(self.face_ids >= 0)
+        self._assigned = assigned
+        corners = m.faces[torch.as_tensor(self.face_ids[assigned])].reshape(-1)  # (3Ma,)
+        with torch.no_grad():
+            rest = lbs.forward(m, self.betas.reshape(1, -1), torch.zeros(1, 24, 3),
+                               points=lbs.SurfacePoints.from_vertex_ids(corners)).vertices[0].double().numpy()
+        Ma = len(assigned)
+        self._vc = rest.reshape(Ma, 3, 3)  # rest corner positions
+        self._wc = m.weights[corners].double().numpy().reshape(Ma, 3, -1)  # corner skinning weights
+        bary = self.bary[assigned]
+        self._bary_a = bary
+        s = (self._vc * bary[:, :, None]).sum(1)
+        n = np.cross(self._vc[:, 1] - self._vc[:, 0], self._vc[:, 2] - self._vc[:, 0])
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        self._rest_point = s + self.config.ik.marker_offset_m * n  # the marker's rest position
+        self._w_point = np.einsum("mc,mcj->mj", bary, self._wc)
+        self._w_desc = self._w_point @ self._desc.T  # W[m, j] = sum of weights of j's subtree
+
+    # ------------------------------------------------------------------ the model and its Jacobian
+    def _linearize(self, theta: np.ndarray, trans: np.ndarray, markers: np.ndarray, vis: np.ndarray,
+                   jacobian: bool = True, joint_jacobian: bool = False) -> dict:
+        """Residuals and Jacobians for B frames.  theta (B,72), trans (B,3), markers (B,M,3), vis (B,M).
+        Returns dict: pred (B,Ma,3), resid (B,Ma,3) pred - marker (0 where not visible), w (B,Ma),
+        residual (B,) mean distance, joints (B,24,3), root_world (B,3,3), J (B,Ma,3,75),
+        GJ (B,72,75) joint Jacobian."""
+        B = theta.shape[0]
+        c = self.config.ik
+        th = torch.as_tensor(theta.reshape(B, 24, 3), dtype=torch.float32)
+        with torch.no_grad():
+            rot = pose_matrices(th[:, 0], th[:, 1:], torch.tensor(self.yaw, dtype=torch.float32), self.up)
+            out = lbs.forward(self.model, self.betas.reshape(1, -1), rot, None, points=self._one_point)
+        A = out.skinning.double().numpy()  # (B,24,3,4)
+        grot = out.joint_rotations.double().numpy()  # (B,24,3,3)
+        pj = out.joints.double().numpy()  # (B,24,3) without trans
+        a = self._assigned
+        Ma = len(a)
+        Tc = (self._wc.reshape(Ma * 3, -1) @ A.reshape(B, 24, 12)).reshape(B, Ma, 3, 3, 4)
+        pc = np.einsum("bmcrk,mck->bmcr", Tc[..., :3], self._vc) + Tc[..., 3] + trans[:, None, None, :]
+        s = (pc * self._bary_a[None, :, :, None]).sum(2)
+        mk = markers[:, a]
+        w = vis[:, a].astype(np.float64)
+        if c.offset_model == "normal":
+            n = np.cross(pc[:, :, 1] - pc[:, :, 0], pc[:, :, 2] - pc[:, :, 0])
+            n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+            pred = s + c.marker_offset_m * n
+        else:  # the paper's distance model as a 3-vector: the point delta from the surface towards the marker
+            d = np.nan_to_num(mk) - s
+            pred = s + c.marker_offset_m * d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-9)
+        resid = np.where(w[..., None] > 0, pred - np.nan_to_num(mk), 0.0)
+        dist = np.linalg.norm(resid, axis=-1)
+        res = {"pred": pred, "resid": resid, "w": w, "dist": dist,
+               "residual": (dist * w).sum(1) / np.maximum(w.sum(1), 1.0),
+               "joints": pj + trans[:, None, :], "root_world": grot[:, 0]}
+        if jacobian:
+            jr = right_jacobian_so3(theta.reshape(B, 24, 3))
+            gj = grot @ jr  # (B,24,3,3) world rotation axes per local axis-angle component
+            # the marker's rest point under each joint's transform, blended over each subtree
+            Y = np.einsum("bjrk,mk->bmjr", A[..., :3], self._rest_point) + A[:, None, :, :, 3]
+            S = self._desc @ (Y * self._w_point[None, :, :, None])
+            cvec = S - self._w_desc[None, :, :, None] * pj[:, None, :, :]
+            Jr_ = _skew_cross_columns(cvec, gj[:, None])  # (B,Ma,24,3,3)
+            J = np.zeros((B, len(a), 3, N_PARAMS))
+            J[..., :N_POSE] = Jr_.transpose(0, 1, 3, 2, 4).reshape(B, len(a), 3, N_POSE)
+            J[..., N_POSE:] = np.eye(3)
+            res["J"] = J
+            if joint_jacobian:
+                diff = pj[:, :, None, :] - pj[:, None, :, :]  # (B,k,j,3) p_k - p_j
+                Gk = _skew_cross_columns(diff, gj[:, None]) * self._desc.T[None, :, :, None, None]
+                G = np.zeros((B, 24, 3, N_PARAMS))
+                G[..., :N_POSE] = Gk.transpose(0, 1, 3, 2, 4).reshape(B, 24, 3, N_POSE)
+                G[..., N_POSE:] = np.eye(3)
+                res["GJ"] = G.reshape(B, 72, N_PARAMS)
+        return res
+
+    def _prior_terms(self, theta: np.ndarray, prior: np.ndarray, frames: int) -> tuple[np.ndarray, float]:
+        """Pose-prior residual (B,72) (root excluded unless prior_includes_root) and its weight^2."""
+        c = self.config.ik
+        diff = theta - prior
+        diff[:, :3] = theta[:, :3] - nearest_equivalent(prior[:, :3], theta[:, :3])
+        if not c.prior_includes_root:
+            diff = diff.copy()
+            diff[:, :3] = 0.0
+        count = N_POSE if c.prior_includes_root else N_POSE - 3
+        return diff, c.pose_weight / (count * frames)
+
+    def _gauss_newton(self, theta, trans, markers, vis, prior, iterations: int):
+        """Independent per-frame Levenberg-Marquardt (batched over B frames) on the Stage-4 energy."""
+        c = self.config
+        unit = c.ik.distance_unit_m
+        theta, trans = theta.copy(), trans.copy()
+        for _ in range(iterations):
+            lin = self._linearize(theta, trans, markers, vis)
+            w = lin["w"]
+            wm = c.ik.marker_weight / np.maximum(w.sum(1), 1.0) / unit**2  # (B,)
+            J = lin["J"] * w[..., None, None]
+            Jf = J.reshape(J.shape[0], -1, N_PARAMS)
+            rf = lin["resid"].reshape(J.shape[0], -1)
+            Jt = np.ascontiguousarray(Jf.transpose(0, 2, 1))  # numpy's stacked matmul is BLAS only on contiguous operands
+            H = (Jt @ Jf) * wm[:, None, None]
+            g = (Jt @ rf[..., None])[..., 0] * wm[:, None]
+            pd, pw = self._prior_terms(theta, prior, 1)
+            H[:, np.arange(N_POSE), np.arange(N_POSE)] += pw if c.ik.prior_includes_root else np.r_[np.zeros(3), np.full(69, pw)]
+            g[:, :N_POSE] += pw * pd
+            diag = np.einsum("bii->bi", H)
+            H[:, np.arange(N_PARAMS), np.arange(N_PARAMS)] += c.damping * diag + 1e-9
+            step = np.linalg.solve(H, -g[..., None])[..., 0]
+            theta += step[:, :N_POSE]
+            trans += step[:, N_POSE:]
+            theta[:, :3] = wrap_rotation_vector(theta[:, :3])
+        return theta, trans
+
+    # ------------------------------------------------------------------ per frame
+    def _prior_at(self, stamp: int) -> np.ndarray | None:
+        """(72,) world prior (before the yaw) of the latest valid prior at or before ``stamp``."""
+        best = None
+        for p in reversed(self._priors):
+            if p[0] <= stamp and p[4]:
+                best = p
+                break
+        if best is None:
+            return None
+        root = best[1]
+        if best[5]:
+            root = matrix_to_axis_angle(torch.as_tensor(self.r_wc @ axis_angle_to_matrix(torch.as_tensor(root)).numpy())).numpy()
+        return np.concatenate([root, best[2].reshape(-1)])
+
+    def _estimate(self, frame: _Frame) -> WindowResult:
+        c = self.config
+        prev = self._history[-1] if self._history else None
+        theta0 = prev.theta.copy() if prev is not None else np.zeros(N_POSE)
+        trans0 = prev.trans.copy() if prev is not None else np.zeros(3)
+        if c.extrapolate and len(self._history) >= 2:  # constant-velocity warm start
+            pp = self._history[-2]
+            theta0[3:] += prev.theta[3:] - pp.theta[3:]
+            trans0 = trans0 + (prev.trans - pp.trans)
+            # the root rotation continues by its last frame-to-frame rotation (no axis-angle wrap issue)
+            r_prev = axis_angle_to_matrix(torch.as_tensor(prev.theta[:3]))
+            r_pp = axis_angle_to_matrix(torch.as_tensor(pp.theta[:3]))
+            theta0[:3] = matrix_to_axis_angle(r_prev @ r_pp.transpose(0, 1) @ r_prev).numpy()
+        prior = self._prior_at(frame.stamp) if self.has_prior else None
+        frame.prior = prior if prior is not None else (prev.theta.copy() if prev is not None else theta0.copy())
+        mk, vis = frame.markers[None], frame.visible[None]
+        theta, trans = self._gauss_newton(theta0[None], trans0[None], mk, vis, frame.prior[None], c.estimate_iterations)
+        lin = self._linearize(theta, trans, mk, vis, jacobian=False)
+        frame.theta, frame.trans = theta[0], trans[0]
+        frame.residual, frame.joints = float(lin["residual"][0]), lin["joints"][0]
+        self._pending.append(frame)
+        self._history.append(frame)
+        self._change_handling(frame, lin)
+        return self._result(frame, "estimate", lin["root_world"][0])
+
+    def _result(self, f: _Frame, kind: str, root_world: np.ndarray) -> WindowResult:
+        root = matrix_to_axis_angle(torch.as_tensor(root_world)).numpy()
+        return WindowResult(f.stamp, f.index, kind, np.concatenate([root, f.theta[3:]]), f.trans.copy(),
+                            f.joints.copy(), self.betas.double().numpy().copy(), float(f.residual), self.labels_version)
+
+    # ------------------------------------------------------------------ fixed-lag smoothing
+    def _refine(self, count: int, final: bool = False) -> list[WindowResult]:
+        """Banded Gauss-Newton over [context | pending] with the offline IK energy + smoothness;
+        finalise the first ``count`` pending frames."""
+        t0 = time.perf_counter()
+        c = self.config
+        ctx = list(self._context)[-c.context_frames:] if c.context_frames else []
+        free = list(self._pending)[: c.lag_frames + c.hop_frames] if not final else list(self._pending)[:count]
+        window = ctx + free
+        T, F, C = len(window), len(free), len(ctx)
+        if c.refine_iterations and F > 0:
+            theta = np.stack([f.theta for f in window])
+            trans = np.stack([f.trans for f in window])
+            markers = np.stack([f.markers for f in window])
+            vis = np.stack([f.visible for f in window])
+            prior = np.stack([f.prior for f in window])
+            for _ in range(c.refine_iterations):
+                step = self._window_step(theta, trans, markers, vis, prior, C)
+                theta[C:] += step[:, :N_POSE]
+                trans[C:] += step[:, N_POSE:]
+                theta[:, :3] = wrap_rotation_vector(theta[:, :3])
+            for i, f in enumerate(free):
+                f.theta, f.trans = theta[C + i], trans[C + i]
+        done = [self._pending.popleft() for _ in range(min(count, len(self._pending)))]
+        out = []
+        if done:
+            th = np.stack([f.theta for f in done])
+            tr = np.stack([f.trans for f in done])
+            lin = self._linearize(th, tr, np.stack([f.markers for f in done]), np.stack([f.visible for f in done]), jacobian=False)
+            for i, f in enumerate(done):
+                f.residual, f.joints = float(lin["residual"][i]), lin["joints"][i]
+                self._context.append(f)
+                out.append(self._result(f, "refined", lin["root_world"][i]))
+        self.timing["refine_s"] += time.perf_counter() - t0
+        self.timing["refines"] += 1
+        return out
+
+    def _window_step(self, theta, trans, markers, vis, prior, n_fixed: int) -> np.ndarray:
+        """One damped Gauss-Newton step for the free frames -> (T - n_fixed, 75).
+
+        The normal equations are block-banded (the acceleration term couples frames up to two
+        apart); they are solved by conjugate gradients preconditioned with the per-frame blocks,
+        which only ever touches (75,75) blocks and (72,75) joint Jacobians."""
+        c = self.config
+        unit = c.ik.distance_unit_m
+        T = theta.shape[0]
+        smooth = T >= 3 and c.smoothness_weight > 0
+        lin = self._linearize(theta, trans, markers, vis, joint_jacobian=smooth)
+        w = lin["w"]
+        wm = c.ik.marker_weight / max(w.sum(), 1.0) / unit**2
+        J = (lin["J"] * w[..., None, None]).reshape(T, -1, N_PARAMS)[n_fixed:]
+        rf = lin["resid"].reshape(T, -1)[n_fixed:]
+        Jt = np.ascontiguousarray(J.transpose(0, 2, 1))
+        Hd = (Jt @ J) * wm
+        g = (Jt @ rf[..., None])[..., 0] * wm
+        pd, pw = self._prior_terms(theta[n_fixed:], prior[n_fixed:], T)
+        idx = np.arange(N_POSE)
+        Hd[:, idx, idx] += pw if c.ik.prior_includes_root else np.r_[np.zeros(3), np.full(69, pw)]
+        g[:, :N_POSE] += pw * pd
+        F = T - n_fixed
+        blocks = Hd.copy()
+        if smooth:
+            rate = self.rate_hz or c.ik.smoothness_reference_hz
+            ws = c.smoothness_weight * (rate / c.ik.smoothness_reference_hz) ** 4 / ((T - 2) * 24) / unit**2
+            L = np.zeros((T - 2, T))
+            for i in range(T - 2):
+                L[i, i:i + 3] = (1.0, -2.0, 1.0)
+            Cm = (L.T @ L)[n_fixed:, n_fixed:]  # banded: frames up to 2 apart interact
+            P = lin["joints"].reshape(T, 72)
+            G = lin["GJ"][n_fixed:]
+            Gt = np.ascontiguousarray(G.transpose(0, 2, 1))
+            back = (L.T @ (L @ P))[n_fixed:]  # gradient of 0.5 |L P|^2 w.r.t. P
+            g += ws * (Gt @ back[..., None])[..., 0]
+            blocks += (ws * np.diagonal(Cm))[:, None, None] * (Gt @ G)
+        damp = c.damping * np.einsum("tii->ti", blocks) + 1e-9
+        blocks[:, np.arange(N_PARAMS), np.arange(N_PARAMS)] += damp
+        Hd[:, np.arange(N_PARAMS), np.arange(N_PARAMS)] += damp
+        precond = np.linalg.inv(blocks)
+
+        def matvec(x):
+            y = (Hd @ x[..., None])[..., 0]
+            if smooth:
+                q = Cm @ (G @ x[..., None])[..., 0]
+                y += ws * (Gt @ q[..., None])[..., 0]
+            return y
+
+        # preconditioned conjugate gradients on H x = -g
+        x = -(precond @ g[..., None])[..., 0]
+        r = -g - matvec(x)
+        z = (precond @ r[..., None])[..., 0]
+        p = z.copy()
+        rz = float((r * z).sum())
+        tol = 1e-10 * max(float((g * g).sum()), 1e-30)
+        for _ in range(self.config.cg_iterations if smooth else 0):
+            if float((r * r).sum()) <= tol:
+                break
+            Ap = matvec(p)
+            alpha = rz / float((p * Ap).sum())
+            x += alpha * p
+            r -= alpha * Ap
+            z = (precond @ r[..., None])[..., 0]
+            rz_new = float((r * z).sum())
+            p = z + (rz_new / rz) * p
+            rz = rz_new
+        return x
+
+    # ------------------------------------------------------------------ change handling
+    def _handle_track_ids(self, track_ids) -> None:
+        if track_ids is None:
+            return
+        ids = np.asarray(track_ids).reshape(-1)
+        if self._track_ids is not None and self.locked:
+            changed = np.flatnonzero(ids != self._track_ids)
+            if len(changed):
+                self._unassign(changed)
+        self._track_ids = ids.copy()
+
+    def _unassign(self, markers: np.ndarray) -> None:
+        markers = np.asarray(markers)
+        if self.face_ids is None or not len(markers):
+            return
+        was = self.face_ids[markers] >= 0
+        self.face_ids[markers] = -1
+        self.bary[markers] = 0.0
+        self._seen_run[markers] = 0
+        self._slip_run[markers] = 0
+        if was.any():
+            self.labels_version += 1
+            self._prepare_lock()
+
+    def _change_handling(self, frame: _Frame, lin: dict) -> None:
+        c = self.config
+        rate = self.rate_hz or 120.0
+        vis = frame.visible
+        assigned = self.face_ids >= 0
+        # slipping markers: residual jump that persists
+        dist = np.zeros(len(vis))
+        dist[self._assigned] = lin["dist"][0]
+        over = vis & assigned & (dist > c.slip_threshold_m)
+        self._slip_run = np.where(over, self._slip_run + 1, np.where(vis, 0, self._slip_run))
+        slipped = np.flatnonzero(self._slip_run >= c.slip_frames)
+        # unassigned markers seen long enough
+        self._seen_run = np.where(vis & ~assigned, self._seen_run + 1, np.where(assigned, 0, 0))
+        fresh = np.flatnonzero(self._seen_run >= c.new_track_frames)
+        if len(slipped):
+            self.stats["slips"] += len(slipped)
+        if len(slipped) or len(fresh):
+            self._assign(np.union1d(slipped, fresh), frames=max(c.new_track_frames, c.slip_frames), count_new=len(fresh))
+        # whole-fit degradation or a new subject -> re-bootstrap (estimates continue meanwhile)
+        n_vis = int(vis.sum())
+        bad = (frame.residual > c.degrade_threshold_m) or (n_vis >= 4 and (vis & ~(self.face_ids >= 0)).sum() > 0.5 * n_vis)
+        self._degrade_run = self._degrade_run + 1 if bad else 0
+        if self._degrade_run >= c.degrade_s * rate and self._boot is None:
+            self._boot = deque(maxlen=self._boot_frames_needed())
+            self._degrade_run = 0
+        # periodic re-check of every correspondence on the recent window
+        self._since_recheck += 1
+        if c.recheck_period_s > 0 and self._since_recheck >= c.recheck_period_s * rate:
+            self._since_recheck = 0
+            self._recheck()
+
+    def _recent(self, frames: int):
+        hist = list(self._history)[-frames:]
+        markers = torch.as_tensor(np.stack([f.markers for f in hist]), dtype=torch.float32)
+        vis = torch.as_tensor(np.stack([f.visible for f in hist]))
+        theta = torch.as_tensor(np.stack([f.theta for f in hist]), dtype=torch.float32)
+        params = BodyParams(theta[:, :3].contiguous(), theta[:, 3:].reshape(-1, 23, 3).contiguous(),
+                            torch.as_tensor(np.stack([f.trans for f in hist]), dtype=torch.float32), self.betas,
+                            torch.tensor(self.yaw, dtype=torch.float32))
+        return markers, vis, params
+
+    def _assign(self, which: np.ndarray, frames: int, count_new: int = 0) -> None:
+        """Stage 3 for the given markers on the recent frames under the current estimates."""
+        markers, vis, params = self._recent(frames)
+        which = np.asarray(which)
+        att = find_marker_surface_points(self.model, markers[:, which], vis[:, which], params, self.up, self.allowed_ids,
+                                         self.config.bootstrap_solver.correspondence)
+        faces = att.face_ids.numpy()
+        ok = faces >= 0
+        if not ok.any():
+            return
+        self.face_ids[which[ok]] = faces[ok]
+        self.bary[which[ok]] = att.bary.double().numpy()[ok]
+        self._seen_run[which] = 0
+        self._slip_run[which] = 0
+        self.stats["new_tracks"] += count_new
+        self.stats["reassigned"] += int(ok.sum())
+        self.labels_version += 1
+        self._prepare_lock()
+
+    def _recheck(self) -> None:
+        """Re-run Stage 3 for every marker on the recent window; keep a new point only when it fits
+        clearly better than the current one."""
+        c = self.config
+        if len(self._history) < 4:
+            return
+        self.stats["rechecks"] += 1
+        markers, vis, params = self._recent(c.recheck_frames)
+        att = find_marker_surface_points(self.model, markers, vis, params, self.up, self.allowed_ids,
+                                         c.bootstrap_solver.correspondence)
+        cur = self._attachment()
+        ok = cur.assigned
+        current_score = torch.full((len(self.face_ids),), float("inf"))
+        if ok.any():
+            pts = lbs.SurfacePoints(cur.face_ids[ok], cur.bary[ok])
+            from uuomocap.solver_core.body_params import pose_params
+
+            with torch.no_grad():
+                posed = pose_params(self.model, params, self.up, pts).vertices  # (S,Ma,3)
+            d = (posed - torch.nan_to_num(markers[:, ok])).norm(dim=-1)
+            w = vis[:, ok].float()
+            current_score[ok] = (d * w).sum(0) / w.sum(0).clamp(min=1)
+        better = (att.face_ids >= 0) & (att.score_m < current_score - c.recheck_improvement_m)
+        idx = torch.nonzero(better).reshape(-1).numpy()
+        if len(idx):
+            self.face_ids[idx] = att.face_ids.numpy()[idx]
+            self.bary[idx] = att.bary.double().numpy()[idx]
+            self.stats["reassigned"] += len(idx)
+            self.labels_version += 1
+            self._prepare_lock()
