@@ -96,3 +96,19 @@ def mean_distance_to_targets(
     mean = total / seen.clamp(min=1.0).unsqueeze(-1)
     mean[seen == 0] = float("inf")
     return mean
+
+
+def vertex_face_table(faces: torch.Tensor, num_vertices: int) -> torch.Tensor:
+    """(N, K) long: the faces using each vertex, padded by repeating the vertex's first face."""
+    fl = faces.reshape(-1)
+    face_of = torch.arange(faces.shape[0]).repeat_interleave(3)
+    order = torch.argsort(fl, stable=True)
+    v_sorted, f_sorted = fl[order], face_of[order]
+    counts = torch.bincount(fl, minlength=num_vertices)
+    if bool((counts == 0).any()):
+        raise ValueError("the body model has vertices that belong to no face")
+    starts = torch.cumsum(counts, 0) - counts
+    width = int(counts.max())
+    k = torch.arange(width)
+    pos = starts[:, None] + torch.minimum(k[None], counts[:, None] - 1)
+    return f_sorted[pos]

@@ -70,6 +70,9 @@ def run_lbfgs(
         params,
         lr=config.lr,
         max_iter=config.iterations_per_step,
+        # torch's default (1.25 x max_iter) ends a step early when line searches need extra
+        # evaluations, which would look like convergence
+        max_eval=config.iterations_per_step * 4,
         tolerance_grad=config.tolerance_grad,
         tolerance_change=config.tolerance_change,
         history_size=config.history_size,
@@ -94,10 +97,12 @@ def run_lbfgs(
     iterations = 0
     report.stopped = "max iterations"
     while iterations < config.max_iterations:
+        evals_before = evaluations
         optimizer.step(closure)
         state = optimizer.state[params[0]]
         done = int(state.get("n_iter", iterations + config.iterations_per_step))
-        stalled = done - iterations < config.iterations_per_step
+        # fewer iterations than asked without hitting the evaluation cap = a tolerance test fired
+        stalled = done - iterations < config.iterations_per_step and evaluations - evals_before < config.iterations_per_step * 4
         iterations = done
         with torch.no_grad():
             current = float(loss_fn())

@@ -1,0 +1,361 @@
+"""Marker-part matching (paper Sec. "Marker-Part Matching", Step 2: hypothesis testing for part localisation).
+
+Given the K marker groups from segmentation, the candidates are the connected K-joint subtrees of
+the kinematic tree (the published code enumerates all connected subtrees, not only chains).  Each
+candidate is fitted to the markers with the body's pose fixed to the video prior, optimising the
+yaw, a per-frame translation and the shape, by the unidirectional chamfer from the markers to the
+candidate's vertices (lambda=10) plus the shape prior (lambda=0.1); the lowest error wins.
+
+Implementation (cheap and batched, beyond the paper's plain L-BFGS):
+1. every (candidate, yaw start) pair is first registered by ICP in closed form - nearest
+   vertices, per-frame translation = centroid difference, yaw = 1-D Procrustes about the up
+   axis - on a subsample of frames;
+2. the best few candidates are then refined by L-BFGS over yaw, translation and shape with the
+   paper's energy, and the lowest energy is kept.
+The translation starts from the per-frame marker median (paper).  Whether the markers cover the
+full body is decided from bounding-box volumes (published code: marker box / body box > 0.4 ->
+full body); a full body has the single candidate "all joints".
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from uuomocap.solver_core.body_params import fill_nan_rows, pose_body, yaw_matrix
+from uuomocap.solver_core.chamfer import gather_points, nearest_indices
+from uuomocap.solver_core.pose_fitting import chamfer_to_body
+from uuomocap.solver_core.optimization import LBFGSConfig, run_lbfgs
+from uuomocap.solver_core.regularizers import DISTANCE_UNIT_M
+from uuomocap.solver_core.parts import connected_subtrees, vertex_dominant_joint
+
+
+@dataclass(frozen=True)
+class PartMatchingConfig:
+    # Paper Sec. "Step 2": weight of the unidirectional chamfer.
+    chamfer_weight: float = 10.0
+    # Paper Sec. "Step 2": weight of the shape prior.
+    shape_weight: float = 0.1
+    # Paper Sec. "Implementation": L-BFGS learning rate 1.0 for part localisation.
+    lbfgs: LBFGSConfig = LBFGSConfig(lr=1.0, max_iterations=60, iterations_per_step=10, rel_tol=1e-4)
+    # Paper Sec. "Step 2": prune candidates sharing >= 90 % of their joints with a kept one.
+    prune_overlap: float = 0.9
+    # Published code: marker bounding-box volume / body bounding-box volume > 0.4 -> full body.
+    full_body_volume_ratio: float = 0.4
+    # Paper Sec. "Stage 1": yaw starts (degrees) - every candidate is registered from each.
+    yaw_starts_deg: tuple[float, ...] = (0.0, 90.0, 180.0, 270.0)
+    # Beyond the paper (speed): frames used to rank candidates (evenly spaced).
+    frames: int = 48
+    # Beyond the paper (speed): closed-form ICP iterations per (candidate, yaw start).
+    icp_iterations: int = 15
+    # Beyond the paper (speed): candidates refined by L-BFGS after the ICP ranking.
+    refine_top: int = 3
+    # Bound on the enumeration: K is capped here for partial bodies (a part of the paper's
+    # appendix has at most 5 joints; 8 leaves room for over-segmentation).
+    max_part_joints: int = 8
+    # Bound on the enumeration: never test more candidates than this (after pruning).
+    max_candidates: int = 400
+    # Energies measure distances in this unit (regularizers.DISTANCE_UNIT_M explains why it matters).
+    distance_unit_m: float = DISTANCE_UNIT_M
+
+
+@dataclass
+class YawStart:
+    """One yaw hypothesis of the chosen candidate: ICP-refined yaw and its chamfer error."""
+
+    start_deg: float
+    yaw: float
+    error: float
+
+
+@dataclass
+class PartMatch:
+    joints: tuple[int, ...]            # joints of the chosen candidate (all 24 for a full body)
+    vertex_ids: np.ndarray             # (Nc,) vertices whose dominant joint is in ``joints``
+    yaw: float                         # radians, best yaw of the chosen candidate
+    trans: np.ndarray                  # (T,3) translation for every frame at ``yaw``
+    betas: np.ndarray                  # (B,) shape after the refinement
+    error: float                       # paper E_S of the chosen candidate
+    full_body: bool
+    volume_ratio: float
+    cluster_count: int
+    candidates_tested: int
+    yaw_starts: list[YawStart] = field(default_factory=list)
+    ranking: list[tuple[tuple[int, ...], float]] = field(default_factory=list)  # (joints, E_S) best first
+
+
+# ----------------------------------------------------------------------------- geometry helpers
+
+
+def oriented_box_volume(points: np.ndarray, up: np.ndarray) -> float:
+    """Volume of a yaw-invariant bounding box: extent along ``up`` x extents along the two
+    horizontal principal axes.  points: (P,3); returns m^3 (0 for fewer than 2 points)."""
+    pts = points[np.isfinite(points).all(axis=1)]
+    if len(pts) < 2:
+        return 0.0
+    height = float(np.ptp(pts @ up))
+    horiz = pts - np.outer(pts @ up, up)
+    horiz = horiz - horiz.mean(axis=0)
+    # principal horizontal axes
+    cov = horiz.T @ horiz
+    _, vecs = np.linalg.eigh(cov)
+    a, b = vecs[:, 2], vecs[:, 1]
+    return height * float(np.ptp(horiz @ a)) * float(np.ptp(horiz @ b))
+
+
+def marker_to_body_volume_ratio(markers: np.ndarray, visible: np.ndarray, body_vertices: np.ndarray, up: np.ndarray) -> float:
+    """Median over frames of marker box volume / body box volume (published full-body test).
+
+    markers (T,M,3); visible (T,M); body_vertices (T',N,3) prior-posed body at some frames.
+    """
+    vols = [oriented_box_volume(markers[t][visible[t]], up) for t in range(markers.shape[0]) if visible[t].sum() >= 4]
+    body = [oriented_box_volume(v, up) for v in body_vertices]
+    if not vols or not body:
+        return 0.0
+    return float(np.median(vols) / max(np.median(body), 1e-9))
+
+
+def candidate_part_joints(parents: torch.Tensor, k: int, overlap: float, max_candidates: int) -> list[tuple[int, ...]]:
+    """Connected k-joint subtrees, pruned: drop one sharing >= ``overlap`` of its joints with a kept one."""
+    subtrees = [tuple(sorted(s)) for s in connected_subtrees([int(p) for p in parents], k)]
+    kept: list[tuple[int, ...]] = []
+    kept_sets: list[set[int]] = []
+    for cand in subtrees:
+        cs = set(cand)
+        if any(len(cs & ks) >= overlap * len(cs) for ks in kept_sets):
+            continue
+        kept.append(cand)
+        kept_sets.append(cs)
+        if len(kept) >= max_candidates:
+            break
+    return kept
+
+
+def rigid_yaw_icp(
+    points: torch.Tensor,
+    markers: torch.Tensor,
+    visible: torch.Tensor,
+    up: torch.Tensor,
+    yaw_start: torch.Tensor,
+    iterations: int,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Closed-form ICP for a yaw about ``up`` plus a per-frame translation, batched over hypotheses.
+
+    points: (H, S, N, 3) model points (already centred on the rotation centre); markers: (S, M, 3);
+    visible: (S, M) bool; yaw_start: (H,) radians.
+    Returns (yaw (H,), offset (H, S, 3), mean squared distance (H,)) with world = R(yaw) p + offset.
+    """
+    hyp, frames, _, _ = points.shape
+    mk = torch.nan_to_num(markers)
+    w = visible.to(points.dtype)  # (S, M)
+    wsum = w.sum(dim=1).clamp(min=1.0)  # (S,)
+    # Only frames with markers carry information; per-frame centroids need >=1 marker.
+    yaw = yaw_start.clone()
+    m_centroid = (mk * w[..., None]).sum(1) / wsum[:, None]  # (S,3)
+    # start: align the model's centroid to the marker median-ish centroid
+    rot = _batch_yaw(yaw, up)  # (H,3,3)
+    p_centroid = points.mean(dim=2)  # (H,S,3)
+    offset = m_centroid[None] - torch.einsum("hij,hsj->hsi", rot, p_centroid)
+    err = torch.zeros(hyp)
+    for _ in range(iterations + 1):
+        rot = _batch_yaw(yaw, up)
+        posed = torch.einsum("hij,hsnj->hsni", rot, points) + offset[:, :, None]
+        idx = nearest_indices(
+            mk[None].expand(hyp, -1, -1, -1).reshape(hyp * frames, -1, 3), posed.reshape(hyp * frames, -1, 3)
+        ).reshape(hyp, frames, -1)
+        q = gather_points(points.reshape(hyp * frames, -1, 3), idx.reshape(hyp * frames, -1)).reshape(hyp, frames, -1, 3)
+        resid = torch.einsum("hij,hsmj->hsmi", rot, q) + offset[:, :, None] - mk[None]
+        err = ((resid**2).sum(-1) * w[None]).sum((1, 2)) / w.sum().clamp(min=1.0)
+        # closed-form update: centre per frame, 1-D Procrustes about up, then translation
+        q_c = (q * w[None, ..., None]).sum(2) / wsum[None, :, None]
+        qt = q - q_c[:, :, None]
+        mt = mk[None] - m_centroid[None, :, None]
+        q_perp = qt - (qt @ up)[..., None] * up
+        cross = torch.linalg.cross(up.expand_as(qt), qt, dim=-1)
+        a = ((mt * q_perp).sum(-1) * w[None]).sum((1, 2))
+        b = ((mt * cross).sum(-1) * w[None]).sum((1, 2))
+        yaw = torch.atan2(b, a)
+        rot = _batch_yaw(yaw, up)
+        offset = m_centroid[None] - torch.einsum("hij,hsj->hsi", rot, q_c)
+    return yaw, offset, err
+
+
+def _batch_yaw(yaw: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
+    from uuomocap.solver_core.rotations import axis_angle_to_matrix
+
+    return axis_angle_to_matrix(yaw[:, None] * up[None].to(yaw.dtype))
+
+
+def marker_median(markers: np.ndarray, visible: np.ndarray) -> np.ndarray:
+    """(T,3) per-frame median of visible markers (paper's translation initialisation); frames
+    without markers are interpolated."""
+    m = np.where(visible[..., None], markers, np.nan)
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(m, axis=1)
+    return fill_nan_rows(med)
+
+
+# ----------------------------------------------------------------------------- the matching
+
+
+def match_markers_to_part(
+    model,
+    markers: torch.Tensor,
+    visible: torch.Tensor,
+    prior_root: torch.Tensor,
+    prior_body_pose: torch.Tensor,
+    shape_prior: torch.Tensor,
+    cluster_labels: np.ndarray,
+    up: torch.Tensor,
+    config: PartMatchingConfig = PartMatchingConfig(),
+    force_full_body: bool | None = None,
+) -> PartMatch:
+    """Find the body part the markers sit on, its yaw hypotheses and a per-frame translation.
+
+    markers (T,M,3) metres (NaN where missing); visible (T,M) bool; prior_root (T,3) world
+    root orientation before yaw; prior_body_pose (T,23,3); shape_prior (B,); cluster_labels (M,)
+    from segmentation; up (3,).  force_full_body overrides the volume test when not None.
+    """
+    frames_total = markers.shape[0]
+    vis_np = visible.numpy().astype(bool)
+    has_data = np.flatnonzero(vis_np.sum(1) >= 1)
+    if len(has_data) == 0:
+        raise ValueError("no frame has a visible marker")
+    sel = has_data[np.unique(np.linspace(0, len(has_data) - 1, min(config.frames, len(has_data))).round().astype(int))]
+    sel_t = torch.as_tensor(sel)
+    mk = markers[sel_t]
+    vis = visible[sel_t]
+    zero = torch.zeros(())
+    with torch.no_grad():
+        rest = pose_body(model, prior_root[sel_t], prior_body_pose[sel_t], torch.zeros(len(sel), 3), shape_prior, zero, up)
+    # rotation centre of the yaw: the pelvis joint (SMPL rotates the root about it)
+    centre = rest.joints[:, :1]  # (S,1,3)
+    pts_all = rest.vertices - centre  # (S,N,3)
+
+    up_np = up.double().numpy()
+    ratio = marker_to_body_volume_ratio(mk.double().numpy(), vis.numpy(), rest.vertices.double().numpy(), up_np)
+    full_body = ratio > config.full_body_volume_ratio if force_full_body is None else bool(force_full_body)
+    k = int(len(np.unique(cluster_labels)))
+    dominant = vertex_dominant_joint(model)
+    dominant = torch.as_tensor(dominant, dtype=torch.long)
+    n_joints = int(model.parents.shape[0])
+    if full_body:
+        candidates = [tuple(range(n_joints))]
+    else:
+        size = max(1, min(k, config.max_part_joints, n_joints))
+        candidates = candidate_part_joints(model.parents, size, config.prune_overlap, config.max_candidates)
+
+    unit2 = config.distance_unit_m**2
+    yaw_starts = torch.tensor([math.radians(d) for d in config.yaw_starts_deg], dtype=torch.float32)
+    scored: list[tuple[float, tuple[int, ...], torch.Tensor, torch.Tensor, torch.Tensor]] = []
+    for cand in candidates:
+        vid = torch.nonzero(torch.isin(dominant, torch.tensor(cand))).reshape(-1)
+        if vid.numel() == 0:
+            continue
+        pts = pts_all[:, vid]
+        yaw, offset, err = rigid_yaw_icp(pts[None].expand(len(yaw_starts), -1, -1, -1), mk, vis, up, yaw_starts, config.icp_iterations)
+        energy = config.chamfer_weight * err / unit2
+        scored.append((float(energy.min()), cand, yaw, offset, energy))
+    if not scored:
+        raise ValueError("no part candidate has vertices")
+    scored.sort(key=lambda s: s[0])
+
+    # refine the best few with the paper's energy over (yaw, translation, shape)
+    refined: list[tuple[float, tuple[int, ...], float, torch.Tensor, torch.Tensor]] = []
+    for energy0, cand, yaw, offset, energies in scored[: max(1, config.refine_top)]:
+        best_h = int(torch.argmin(energies))
+        vid = torch.nonzero(torch.isin(dominant, torch.tensor(cand))).reshape(-1)
+        e, y, tr, b = _refine_candidate(
+            model, mk, vis, prior_root[sel_t], prior_body_pose[sel_t], shape_prior, up, vid,
+            float(yaw[best_h]), offset[best_h] - centre[:, 0], config,
+        )
+        refined.append((e, cand, y, tr, b))
+    refined.sort(key=lambda r: r[0])
+    best_energy, best_cand, best_yaw, _, best_betas = refined[0]
+    best = next(s for s in scored if s[1] == best_cand)
+    vid = torch.nonzero(torch.isin(dominant, torch.tensor(best_cand))).reshape(-1)
+
+    # yaw hypotheses of the chosen candidate: each start's ICP optimum (the refined one replaces its own)
+    starts = []
+    for h, start in enumerate(config.yaw_starts_deg):
+        starts.append(YawStart(start, float(best[2][h]), float(best[4][h])))
+    best_h = int(torch.argmin(best[4]))
+    starts[best_h] = YawStart(starts[best_h].start_deg, best_yaw, best_energy)
+
+    trans = full_translation(model, markers, visible, prior_root, prior_body_pose, best_betas, up, vid, torch.tensor(best_yaw))
+    ranking = [(r[1], r[0]) for r in refined] + [(s[1], s[0]) for s in scored[len(refined):]]
+    return PartMatch(
+        joints=tuple(best_cand),
+        vertex_ids=vid.numpy(),
+        yaw=best_yaw,
+        trans=trans.numpy(),
+        betas=best_betas.numpy(),
+        error=best_energy,
+        full_body=bool(full_body),
+        volume_ratio=ratio,
+        cluster_count=k,
+        candidates_tested=len(scored),
+        yaw_starts=starts,
+        ranking=ranking,
+    )
+
+
+def _refine_candidate(model, mk, vis, root, body_pose, shape_prior, up, vid, yaw0, trans0, config):
+    """L-BFGS over (yaw, per-frame translation, shape) with the paper's E_S; pose fixed to the prior.
+
+    trans0 (S,3): the ICP result as SMPL translation.  ICP places the body as R (x0 - c) + offset
+    with c the pelvis; SMPL rotates the root about the pelvis, R (x0 - c) + c + trans, so
+    trans = offset - c.  Returns (energy, yaw, trans (S,3), betas (B,)).
+    """
+    unit = config.distance_unit_m
+    yaw = torch.tensor(float(yaw0), requires_grad=True)
+    trans = trans0.detach().clone().requires_grad_(True)
+    betas = shape_prior.detach().clone().float().requires_grad_(True)
+    mk_u = mk / unit
+
+    def loss() -> torch.Tensor:
+        cham, _ = chamfer_to_body(model, mk_u, vis, root, body_pose, trans, betas, yaw, up, vid, unit)
+        shape = ((betas - shape_prior) ** 2).mean()
+        return config.chamfer_weight * cham + config.shape_weight * shape
+
+    run_lbfgs([yaw, trans, betas], loss, config.lbfgs)
+    with torch.no_grad():
+        energy = float(loss())
+    return energy, wrap(float(yaw)), trans.detach(), betas.detach()
+
+
+def wrap(angle: float) -> float:
+    return float(angle % (2 * math.pi))
+
+
+@torch.no_grad()
+def full_translation(
+    model, markers, visible, prior_root, prior_body_pose, betas, up, vertex_ids, yaw, iterations: int = 5
+) -> torch.Tensor:
+    """(T,3) per-frame translation at a fixed yaw: the candidate's nearest vertices' centroid moved
+    onto the markers' centroid, a few closed-form ICP rounds (translation only).  Frames without a
+    visible marker are interpolated."""
+    frames = markers.shape[0]
+    out = pose_body(model, prior_root, prior_body_pose, torch.zeros(frames, 3), betas, yaw, up)
+    pts = out.vertices[:, torch.as_tensor(vertex_ids)]
+    vis_np = visible.numpy().astype(bool)
+    med = torch.as_tensor(marker_median(markers.double().numpy(), vis_np), dtype=torch.float32)
+    trans = med - pts.median(dim=1).values
+    mk = torch.nan_to_num(markers)
+    w = visible.float()
+    wsum = w.sum(1)
+    for _ in range(iterations):
+        idx = nearest_indices(mk, pts + trans[:, None])
+        q = gather_points(pts, idx)
+        delta = ((mk - q - trans[:, None]) * w[..., None]).sum(1) / wsum.clamp(min=1.0)[:, None]
+        trans = trans + delta
+    trans_np = trans.double().numpy()
+    trans_np[wsum.numpy() == 0] = np.nan
+    return torch.as_tensor(fill_nan_rows(trans_np), dtype=torch.float32)

@@ -1,0 +1,363 @@
+"""The paper's staged UUO solver for a whole session (paper Secs. "Marker-Part Matching" and
+"Mocap Solving"): segmentation -> part matching -> Stage 1 yaw hypotheses, each through
+Stage 2 (pose fitting), Stage 3 (marker-surface correspondence) and Stage 4 (IK) -> the best
+hypothesis by marker-to-surface fit -> Stage 5 (repeat 3-4 with the Stage-4 result as pose prior).
+
+This module only orchestrates; every stage is a pure function in its own module, reused by the
+sliding-window solver.
+
+Speed (beyond the paper, which optimises every stage over every frame for up to 10k L-BFGS
+iterations): hypotheses are screened through Stages 2-4 on a subsample of frames; the winner's
+chamfer stage runs on a larger subsample and is interpolated to every frame as the IK warm start;
+the IK stages (cheap: only the markers' surface points are skinned) run on every frame.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import torch
+
+from uuomocap.solver_core.body_params import (
+    BodyParams,
+    FreeParameters,
+    MarkerAttachment,
+    angle_difference,
+    interpolate_params,
+    pose_params,
+    up_tensor,
+)
+from uuomocap.solver_core.inverse_kinematics import (
+    InverseKinematicsConfig,
+    predicted_markers,
+    solve_inverse_kinematics,
+)
+from uuomocap.solver_core.marker_surface_correspondence import (
+    CorrespondenceConfig,
+    find_marker_surface_points,
+)
+from uuomocap.solver_core.chamfer import vertex_face_table
+from uuomocap.solver_core.part_matching import PartMatch, PartMatchingConfig, full_translation, match_markers_to_part
+from uuomocap.solver_core.parts import vertex_dominant_joint
+from uuomocap.solver_core.pose_fitting import PoseFittingConfig, fit_pose
+from uuomocap.solver_core.prior_preparation import BodyPrior
+from uuomocap.solver_core.segmentation import SegmentationConfig, segment_markers
+
+STAGES = ("segmentation", "matching", "stage1", "stage2", "stage3", "stage4", "stage5")
+
+
+@dataclass(frozen=True)
+class SolverConfig:
+    # Paper Sec. "Step 1: marker segmentation".
+    segmentation: SegmentationConfig = SegmentationConfig()
+    # Paper Sec. "Step 2: multiple hypothesis testing for part localization".
+    matching: PartMatchingConfig = PartMatchingConfig()
+    # Paper Sec. "Stage 2: pose fitting".
+    pose_fitting: PoseFittingConfig = PoseFittingConfig()
+    # Paper Sec. "Stage 3: marker-vertex correspondence".
+    correspondence: CorrespondenceConfig = CorrespondenceConfig()
+    # Paper Sec. "Stage 4: inverse kinematics".
+    ik: InverseKinematicsConfig = InverseKinematicsConfig()
+    # Paper Sec. "Stage 1": yaw offsets tried, degrees about the up axis (also the part-matching starts).
+    yaw_hypotheses_deg: tuple[float, ...] = (0.0, 90.0, 180.0, 270.0)
+    # Beyond the paper: hypotheses whose registered yaws agree within this are solved once.
+    merge_hypotheses_deg: float = 20.0
+    # Beyond the paper (speed): frames on which each hypothesis goes through Stages 2-4.
+    screening_frames: int = 60
+    # Beyond the paper (speed): frames of the winner's Stage 2 (interpolated to all frames for IK).
+    chamfer_frames: int = 150
+    # Paper Sec. "Stage 5": repeat Stages 3-4 once (more rounds are beyond the paper).
+    refinement_rounds: int = 1
+    # Stop early for the stage ablation: None, "matching", "stage2" or "stage4".
+    stop_after: str | None = None
+    # None: decide full/partial body from the marker volume (published code); True/False forces it.
+    force_full_body: bool | None = None
+
+
+class SolverProgress:
+    """Callbacks for progress display; the default does nothing."""
+
+    def stage_start(self, name: str, detail: str = "") -> None:
+        pass
+
+    def stage_step(self, name: str, iterations: int, loss: float) -> None:
+        pass
+
+    def stage_end(self, name: str, seconds: float) -> None:
+        pass
+
+
+@dataclass
+class SolveResult:
+    params: BodyParams                       # every marker frame, world frame (yaw kept separate)
+    poses: np.ndarray                        # (T,72) world-frame AMASS poses (yaw folded)
+    joints: np.ndarray                       # (T,24,3) metres
+    attachment: MarkerAttachment             # per-marker face/bary on the output model
+    marker_parts: list[str]                  # per marker: dominant joint name ('' unassigned)
+    diagnostics: dict = field(default_factory=dict)
+    stage_results: dict[str, BodyParams] = field(default_factory=dict)
+
+
+def _evenly_spaced(indices: np.ndarray, count: int) -> np.ndarray:
+    if len(indices) <= count:
+        return indices
+    return indices[np.unique(np.linspace(0, len(indices) - 1, count).round().astype(int))]
+
+
+def marker_fit_error(model, markers: torch.Tensor, visible: torch.Tensor, params: BodyParams, attachment: MarkerAttachment, up: torch.Tensor, offset_m: float) -> float:
+    """Mean distance (metres) between visible markers and the body's predicted marker positions
+    (surface point + offset along the normal): the hypothesis score of Stage 1."""
+    with torch.no_grad():
+        pred = predicted_markers(model, params, attachment, up, offset_m)
+        obs = torch.nan_to_num(markers[:, attachment.assigned])
+        w = visible[:, attachment.assigned].float()
+        dist = (pred - obs).norm(dim=-1)
+        return float((dist * w).sum() / w.sum().clamp(min=1.0))
+
+
+def part_vertex_ids(model, joints: tuple[int, ...]) -> torch.Tensor | None:
+    """Vertices of ``model`` whose dominant joint is in ``joints`` (None when that is every joint)."""
+    if len(joints) >= int(model.parents.shape[0]):
+        return None
+    dominant = torch.as_tensor(vertex_dominant_joint(model), dtype=torch.long)
+    return torch.nonzero(torch.isin(dominant, torch.tensor(joints))).reshape(-1)
+
+
+def marker_part_names(model, attachment: MarkerAttachment) -> list[str]:
+    """Per marker the name of the dominant joint at its surface point ('' when unassigned)."""
+    dominant = torch.as_tensor(vertex_dominant_joint(model), dtype=torch.long)
+    names = []
+    for f, b in zip(attachment.face_ids.tolist(), attachment.bary):
+        if f < 0:
+            names.append("")
+            continue
+        corner = int(model.faces[f][int(torch.argmax(b))])
+        names.append(model.joint_names[int(dominant[corner])])
+    return names
+
+
+def solve(
+    markers: np.ndarray,
+    visible: np.ndarray | None,
+    rate_hz: float,
+    up_axis: str,
+    prior: BodyPrior,
+    shape_prior: np.ndarray,
+    model,
+    chamfer_model=None,
+    config: SolverConfig = SolverConfig(),
+    progress: SolverProgress | None = None,
+) -> SolveResult:
+    """Solve a whole session.
+
+    markers (T,M,3) metres in the capture world, NaN where missing; visible (T,M) bool or None
+    (= finite); rate_hz: marker rate; up_axis: '+z', '+y', ...; prior: world-frame body prior at
+    the marker frames (``prior_preparation.prepare_prior`` or ``neutral_prior``); shape_prior (B,);
+    model: output body model (IK, correspondence); chamfer_model: low-resolution model with the same
+    skeleton for the chamfer stages (None = ``model``).
+    """
+    progress = progress or SolverProgress()
+    chamfer_model = chamfer_model or model
+    if config.stop_after not in (None, "matching", "stage2", "stage4"):
+        raise ValueError(f"stop_after must be None, 'matching', 'stage2' or 'stage4', got {config.stop_after!r}")
+    markers = np.asarray(markers, dtype=np.float64)
+    if markers.ndim != 3 or markers.shape[2] != 3:
+        raise ValueError(f"markers must be (T, M, 3), got {markers.shape}")
+    finite = np.isfinite(markers).all(axis=2)
+    vis_np = finite if visible is None else (np.asarray(visible, dtype=bool) & finite)
+    frames_total, marker_count, _ = markers.shape
+    if prior.num_frames != frames_total:
+        raise ValueError(f"prior has {prior.num_frames} frames but the markers have {frames_total}")
+    if not vis_np.any():
+        raise ValueError("no marker is visible in any frame")
+    up = up_tensor(up_axis)
+    mk = torch.as_tensor(markers, dtype=torch.float32)
+    vis = torch.as_tensor(vis_np)
+    prior_root = torch.as_tensor(prior.root_orient, dtype=torch.float32)
+    prior_body = torch.as_tensor(prior.body_pose, dtype=torch.float32)
+    nb = min(int(np.asarray(shape_prior).shape[-1]), model.num_betas, chamfer_model.num_betas)
+    beta_prior = torch.as_tensor(np.asarray(shape_prior)[:nb], dtype=torch.float32)
+    seconds: dict[str, float] = {}
+    losses: dict[str, float] = {}
+    diag: dict = {"frames": frames_total, "markers": marker_count, "rate_hz": rate_hz, "up_axis": up_axis}
+    stage_results: dict[str, BodyParams] = {}
+    all_frames = np.arange(frames_total)
+    data_frames = np.flatnonzero(vis_np.any(axis=1))
+    vertex_faces = vertex_face_table(model.faces, model.v_template.shape[0])
+
+    def timed(name: str, detail: str = ""):
+        class _T:
+            def __enter__(self_inner):
+                progress.stage_start(name, detail)
+                self_inner.t0 = time.perf_counter()
+                return self_inner
+
+            def __exit__(self_inner, *exc):
+                dt = time.perf_counter() - self_inner.t0
+                seconds[name] = seconds.get(name, 0.0) + dt
+                progress.stage_end(name, dt)
+                return False
+
+        return _T()
+
+    def stepper(name):
+        return lambda it, loss: progress.stage_step(name, it, loss)
+
+    # ---- Step 1: segmentation
+    with timed("segmentation"):
+        labels = segment_markers(markers, vis_np, config.segmentation)
+    diag["clusters"] = int(labels.max()) + 1
+    diag["cluster_labels"] = labels.tolist()
+
+    # ---- Step 2: part matching (yaw starts = the Stage-1 hypotheses)
+    match_cfg = replace(config.matching, yaw_starts_deg=tuple(config.yaw_hypotheses_deg))
+    with timed("matching"):
+        match = match_markers_to_part(
+            chamfer_model, mk, vis, prior_root, prior_body, beta_prior, labels, up, match_cfg, config.force_full_body
+        )
+    losses["matching"] = match.error
+    diag.update(_match_diagnostics(model, match))
+    part_chamfer_ids = None if match.full_body else torch.as_tensor(match.vertex_ids, dtype=torch.long)
+    part_output_ids = None if match.full_body else part_vertex_ids(model, match.joints)
+    betas0 = torch.as_tensor(match.betas, dtype=torch.float32)
+    matched = BodyParams(
+        prior_root.clone(), prior_body.clone(), torch.as_tensor(match.trans, dtype=torch.float32), betas0, torch.tensor(match.yaw)
+    )
+    stage_results["matching"] = matched
+    if config.stop_after == "matching":
+        return _finish(model, matched, None, diag, seconds, losses, stage_results, up)
+
+    # ---- Stage 1: yaw hypotheses, each through Stages 2-4 on a subsample of frames
+    hypotheses = _distinct_hypotheses(match, config.merge_hypotheses_deg)
+    screen = _evenly_spaced(data_frames, config.screening_frames)
+    screen_t = torch.as_tensor(screen)
+    results = []
+    with timed("stage1", f"{len(hypotheses)} yaw hypotheses"):
+        for hyp_yaw in hypotheses:
+            yaw_t = torch.tensor(hyp_yaw)
+            trans = full_translation(
+                chamfer_model, mk[screen_t], vis[screen_t], prior_root[screen_t], prior_body[screen_t], betas0, up,
+                match.vertex_ids, yaw_t,
+            )
+            init = BodyParams(prior_root[screen_t].clone(), prior_body[screen_t].clone(), trans, betas0.clone(), yaw_t)
+            p2, _ = fit_pose(
+                chamfer_model, mk[screen_t], vis[screen_t], prior_root[screen_t], prior_body[screen_t], beta_prior, init, up,
+                part_chamfer_ids, config.pose_fitting, rate_hz=rate_hz, on_step=stepper("stage1"),
+            )
+            att = find_marker_surface_points(
+                model, mk[screen_t], vis[screen_t], p2, up, part_output_ids, config.correspondence, vertex_faces
+            )
+            p4, _ = solve_inverse_kinematics(
+                model, mk[screen_t], vis[screen_t], att, prior_root[screen_t], prior_body[screen_t], beta_prior, p2, up,
+                config.ik, FreeParameters(yaw=False), rate_hz=rate_hz, on_step=stepper("stage1"),
+            )
+            err = marker_fit_error(model, mk[screen_t], vis[screen_t], p4, att, up, config.ik.marker_offset_m)
+            results.append({"yaw": hyp_yaw, "fit_m": err, "stage2": p2, "stage2_yaw": float(p2.yaw)})
+    best = min(results, key=lambda r: r["fit_m"])
+    diag["hypotheses"] = [
+        {"start_yaw_deg": math.degrees(r["yaw"]), "stage2_yaw_deg": math.degrees(r["stage2_yaw"]) % 360.0, "marker_fit_mm": 1000 * r["fit_m"]}
+        for r in results
+    ]
+    diag["chosen_yaw_deg"] = math.degrees(best["stage2_yaw"]) % 360.0
+
+    # ---- Stage 2 for the winner on more frames, warm-started from its screening result
+    chamfer_frames = _evenly_spaced(data_frames, config.chamfer_frames)
+    cf_t = torch.as_tensor(chamfer_frames)
+    with timed("stage2"):
+        init = interpolate_params(best["stage2"], screen, chamfer_frames)
+        p2, rep = fit_pose(
+            chamfer_model, mk[cf_t], vis[cf_t], prior_root[cf_t], prior_body[cf_t], beta_prior, init, up,
+            part_chamfer_ids, config.pose_fitting, rate_hz=rate_hz, on_step=stepper("stage2"),
+        )
+    losses["stage2"] = rep.final_loss
+    stage2_all = interpolate_params(p2, chamfer_frames, all_frames)
+    stage_results["stage2"] = stage2_all
+    if config.stop_after == "stage2":
+        return _finish(model, stage2_all, None, diag, seconds, losses, stage_results, up, markers=mk, visible=vis, vertex_faces=vertex_faces, allowed=part_output_ids, corr_cfg=config.correspondence)
+
+    # ---- Stage 3 + Stage 4 on every frame
+    with timed("stage3"):
+        att = find_marker_surface_points(model, mk[cf_t], vis[cf_t], p2, up, part_output_ids, config.correspondence, vertex_faces)
+    with timed("stage4"):
+        p4, rep = solve_inverse_kinematics(
+            model, mk, vis, att, prior_root, prior_body, beta_prior, stage2_all, up, config.ik,
+            FreeParameters(yaw=False), rate_hz=rate_hz, on_step=stepper("stage4"),
+        )
+    losses["stage4"] = rep.final_loss
+    stage_results["stage4"] = p4
+    diag["stage4_marker_fit_mm"] = 1000 * marker_fit_error(model, mk, vis, p4, att, up, config.ik.marker_offset_m)
+    if config.stop_after == "stage4":
+        return _finish(model, p4, att, diag, seconds, losses, stage_results, up)
+
+    # ---- Stage 5: repeat Stages 3-4 with the previous result as the pose prior
+    current, current_att = p4, att
+    with timed("stage5", f"{config.refinement_rounds} round(s)"):
+        for _ in range(config.refinement_rounds):
+            current_att = find_marker_surface_points(model, mk, vis, current, up, part_output_ids, config.correspondence, vertex_faces)
+            current, rep = solve_inverse_kinematics(
+                model, mk, vis, current_att, current.root_orient, current.body_pose, beta_prior, current, up, config.ik,
+                FreeParameters(yaw=False), rate_hz=rate_hz, on_step=stepper("stage5"),
+            )
+            losses["stage5"] = rep.final_loss
+    stage_results["stage5"] = current
+    diag["stage5_marker_fit_mm"] = 1000 * marker_fit_error(model, mk, vis, current, current_att, up, config.ik.marker_offset_m)
+    return _finish(model, current, current_att, diag, seconds, losses, stage_results, up)
+
+
+def _distinct_hypotheses(match: PartMatch, merge_deg: float) -> list[float]:
+    """The registered yaw of each start, best first, dropping near-duplicates."""
+    ordered = sorted(match.yaw_starts, key=lambda s: s.error)
+    kept: list[float] = []
+    for s in ordered:
+        if all(angle_difference(s.yaw, k) > math.radians(merge_deg) for k in kept):
+            kept.append(s.yaw)
+    return kept
+
+
+def _match_diagnostics(model, match: PartMatch) -> dict:
+    names = model.joint_names
+    return {
+        "full_body": match.full_body,
+        "volume_ratio": match.volume_ratio,
+        "part_joints": [names[j] for j in match.joints],
+        "part_candidates_tested": match.candidates_tested,
+        "matching_yaw_deg": math.degrees(match.yaw) % 360.0,
+        "matching_energy": match.error,
+        "yaw_starts": [
+            {"start_deg": s.start_deg, "yaw_deg": math.degrees(s.yaw) % 360.0, "energy": s.error} for s in match.yaw_starts
+        ],
+    }
+
+
+def _finish(model, params, attachment, diag, seconds, losses, stage_results, up, markers=None, visible=None, vertex_faces=None, allowed=None, corr_cfg=None) -> SolveResult:
+    if attachment is None:
+        if markers is not None:
+            # Stage-2 snapshot: label markers with the Stage-3 rule on that body
+            attachment = find_marker_surface_points(model, markers, visible, params, up, allowed, corr_cfg, vertex_faces)
+        else:
+            m = len(diag.get("cluster_labels", []))
+            attachment = MarkerAttachment(torch.full((m,), -1, dtype=torch.long), torch.zeros(m, 3), torch.full((m,), float("inf")))
+    with torch.no_grad():
+        joints = pose_params(model, params, up, points=_no_points(model)).joints.double().numpy()
+    diag["stage_seconds"] = {k: round(v, 3) for k, v in seconds.items()}
+    diag["total_seconds"] = round(sum(seconds.values()), 3)
+    diag["stage_losses"] = losses
+    return SolveResult(
+        params=params,
+        poses=params.poses72(up),
+        joints=joints,
+        attachment=attachment,
+        marker_parts=marker_part_names(model, attachment),
+        diagnostics=diag,
+        stage_results=stage_results,
+    )
+
+
+def _no_points(model):
+    """A one-vertex subset: joints without skinning the whole mesh."""
+    from uuomocap.solver_core import lbs
+
+    return lbs.SurfacePoints.from_vertex_ids(torch.zeros(1, dtype=torch.long))
