@@ -218,6 +218,65 @@ def right_jacobian_so3(theta: np.ndarray) -> np.ndarray:
     b = np.where(small, 1.0 / 6.0, (safe - np.sin(safe)) / safe**3)
     return np.eye(3) - a * K + b * (K @ K)
 
+PriorRow = tuple  # (stamp_ns, global_orient (3,), body_pose (23,3), betas (B,), valid, camera_frame, confidence)
+
+
+def world_prior_at(rows: list, stamps: np.ndarray, up_axis: str, num_betas: int) -> tuple[BodyPrior, np.ndarray, bool]:
+    """World prior (up to yaw) at marker ``stamps`` (T,) from received prior rows (``PriorRow``).
+
+    Only rows stamped at or before the last stamp are used (deterministic in lockstep: later priors
+    may or may not have arrived); with none, the earliest valid later row; with no valid row at all,
+    a neutral upright prior.  Returns (prior (T frames), shape prior (B,), has_prior)."""
+    stamps = np.asarray(stamps, dtype=np.int64)
+    last = int(stamps[-1])
+    use = [p for p in rows if p[0] <= last and p[4]]
+    if not use:
+        use = [p for p in rows if p[4]][:1]
+    if not use:
+        return neutral_prior(len(stamps), up_axis, num_betas, stamps), np.zeros(num_betas), False
+    nb = min(len(r[3]) for r in use)
+    cam = BodyPrior(
+        root_orient=np.stack([r[1] for r in use]),
+        body_pose=np.stack([r[2] for r in use]),
+        betas_per_frame=np.stack([r[3][:nb] for r in use]),
+        valid=np.ones(len(use), dtype=bool),
+        confidence=np.array([r[6] for r in use]),
+        stamps_ns=np.array([r[0] for r in use], dtype=np.int64),
+        frame="camera" if use[-1][5] else "world",
+    )
+    world, shape = prepare_prior(cam, up_axis, stamps, 0.0)
+    return world, shape, True
+
+
+def label_markers(model, chamfer_model, markers: np.ndarray, visible: np.ndarray, prior: BodyPrior, shape_prior: np.ndarray,
+                  up_axis: str, config: SolverConfig = SolverConfig()) -> tuple[MarkerAttachment, list[str], dict]:
+    """Marker labels from segmentation + part matching alone (the ``segmenter`` node): the offline
+    Steps 1-2, then Stage 3 on the matched body (prior pose at the matched yaw, translation, shape).
+
+    markers (T,M,3) metres NaN missing; visible (T,M); prior: world prior at these frames.
+    Returns (attachment, per-marker joint names, diagnostics)."""
+    from uuomocap.solver_core.part_matching import match_markers_to_part
+    from uuomocap.solver_core.segmentation import segment_markers
+
+    up = up_tensor(up_axis)
+    vis = np.asarray(visible, dtype=bool) & np.isfinite(markers).all(axis=2)
+    clusters = segment_markers(markers, vis, config.segmentation)
+    mk = torch.as_tensor(markers, dtype=torch.float32)
+    vis_t = torch.as_tensor(vis)
+    root = torch.as_tensor(prior.root_orient, dtype=torch.float32)
+    body = torch.as_tensor(prior.body_pose, dtype=torch.float32)
+    nb = min(len(shape_prior), model.num_betas, chamfer_model.num_betas)
+    beta_prior = torch.as_tensor(np.asarray(shape_prior)[:nb], dtype=torch.float32)
+    match_cfg = replace(config.matching, yaw_starts_deg=tuple(config.yaw_hypotheses_deg))
+    match = match_markers_to_part(chamfer_model, mk, vis_t, root, body, beta_prior, clusters, up, match_cfg, config.force_full_body)
+    params = BodyParams(root, body, torch.as_tensor(match.trans, dtype=torch.float32),
+                        torch.as_tensor(match.betas, dtype=torch.float32), torch.tensor(float(match.yaw)))
+    allowed = None if match.full_body else part_vertex_ids(model, match.joints)
+    att = find_marker_surface_points(model, mk, vis_t, params, up, allowed, config.correspondence)
+    diag = {"clusters": int(clusters.max()) + 1, "full_body": bool(match.full_body),
+            "part_joints": [model.joint_names[j] for j in match.joints], "yaw_deg": math.degrees(match.yaw) % 360.0}
+    return att, marker_part_names(model, att), diag
+
 
 class WindowedSolver:
     """Streaming solver: ``add_prior`` / ``add_markers`` in capture order, ``flush`` at the end.
@@ -291,15 +350,16 @@ class WindowedSolver:
         self._priors.append((int(stamp_ns), go, bp, np.asarray(betas, dtype=np.float64).reshape(-1), bool(valid),
                              bool(camera_frame), float(confidence)))
 
-    def add_markers(self, stamp_ns: int, positions, visible=None, track_ids=None) -> list[WindowResult]:
+    def add_markers(self, stamp_ns: int, positions, visible=None, track_ids=None, frame_index: int | None = None) -> list[WindowResult]:
         """One capture frame: positions (M,3) metres (NaN where missing), visible (M,) bool or None,
-        track_ids (M,) ints or None (a slot whose id changes is a new marker).  Returns the results
+        track_ids (M,) ints or None (a slot whose id changes is a new marker); frame_index: the
+        capture's frame number for the results (default: a running count).  Returns the results
         that became available (estimates and refined frames, in stamp order per kind)."""
-        results = self.push_markers(stamp_ns, positions, visible, track_ids)
+        results = self.push_markers(stamp_ns, positions, visible, track_ids, frame_index)
         results += self.refine_ready()
         return results
 
-    def push_markers(self, stamp_ns: int, positions, visible=None, track_ids=None) -> list[WindowResult]:
+    def push_markers(self, stamp_ns: int, positions, visible=None, track_ids=None, frame_index: int | None = None) -> list[WindowResult]:
         """The causal half of ``add_markers``: the estimate(s) only (a node publishes them before
         running the smoothing pass with ``refine_ready``)."""
         pos = np.asarray(positions, dtype=np.float64)
@@ -315,7 +375,7 @@ class WindowedSolver:
             self.num_markers = pos.shape[0]
             self._seen_run = np.zeros(pos.shape[0], dtype=np.int64)
             self._slip_run = np.zeros(pos.shape[0], dtype=np.int64)
-        frame = _Frame(stamp_ns, self._index, np.where(vis[:, None], pos, np.nan), vis)
+        frame = _Frame(stamp_ns, self._index if frame_index is None else frame_index, np.where(vis[:, None], pos, np.nan), vis)
         self._index += 1
         self.stats["frames"] += 1
         self._handle_track_ids(track_ids)
@@ -382,27 +442,7 @@ class WindowedSolver:
         return []
 
     def _prior_window(self, stamps: np.ndarray) -> tuple[BodyPrior, np.ndarray, bool]:
-        """World prior at ``stamps`` from the priors received up to the last stamp (deterministic:
-        later priors are never used), or a neutral upright prior when there is none."""
-        last = int(stamps[-1])
-        rows = [p for p in self._priors if p[0] <= last and p[4]]
-        if not rows:
-            rows = [p for p in self._priors if p[4]][:1]  # a prior slightly after the window beats none
-        if not rows:
-            nb = self.model.num_betas
-            return neutral_prior(len(stamps), self.up_axis, nb, stamps), np.zeros(nb), False
-        nb = min(len(r[3]) for r in rows)
-        cam = BodyPrior(
-            root_orient=np.stack([r[1] for r in rows]),
-            body_pose=np.stack([r[2] for r in rows]),
-            betas_per_frame=np.stack([r[3][:nb] for r in rows]),
-            valid=np.ones(len(rows), dtype=bool),
-            confidence=np.array([r[6] for r in rows]),
-            stamps_ns=np.array([r[0] for r in rows], dtype=np.int64),
-            frame="camera" if rows[-1][5] else "world",
-        )
-        world, shape = prepare_prior(cam, self.up_axis, stamps, 0.0)
-        return world, shape, True
+        return world_prior_at(list(self._priors), stamps, self.up_axis, self.model.num_betas)
 
     def _bootstrap(self, frames: list[_Frame], rebootstrap: bool) -> list[WindowResult]:
         """Offline staged solver on the window; lock shape / yaw / correspondence; estimate every

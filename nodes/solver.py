@@ -1,0 +1,120 @@
+"""solver: the near-online sliding-window solver (``solver_core.windowed_solver``) as a node.
+
+Inputs: ``markers/raw`` (MarkerFrame; a tracker's fixed-slot output works too: a slot whose
+track id changes is a new marker) and ``body/prior`` (BodyPrior, optional: without it the
+bootstrap starts from a neutral body).  Output ``body/solved``: a SolvedFrame 'estimate' for every
+frame as soon as it is solved, and a 'refined' one once the frame leaves the fixed lag; both carry
+the current marker labels.  End of the marker stream flushes every remaining refined frame, then
+ends ``body/solved``.
+
+Deterministic in lockstep: a frame only ever uses priors stamped at or before it (the replay's
+'solver:body/prior' credit guarantees those arrived), and the math is single-threaded.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from uuomocap.protocol.messages import SolvedFrame
+
+from .base import Node, Port
+
+
+@dataclass(frozen=True)
+class SolverNodeConfig:
+    body_model: str = "open-low"  # open-low, open-full, or a SMPL .pkl/.npz path
+    bootstrap_s: float = 2.5  # seconds of markers (+ prior) for the offline bootstrap
+    lag_frames: int = 10  # fixed lag of the refined output
+    hop_frames: int = 5  # frames finalised per smoothing pass
+    estimate_iterations: int = 2
+    smoothness_weight: float = 1.0
+    publish_estimates: bool = True
+    threads: int = 1  # torch intra-op threads (1 = deterministic and leaves a core to the graph)
+
+    def __post_init__(self):
+        if self.bootstrap_s <= 0 or self.lag_frames < 0 or self.hop_frames < 1 or self.estimate_iterations < 1 or self.threads < 1:
+            raise ValueError("bootstrap_s > 0, lag_frames >= 0, hop_frames >= 1, estimate_iterations >= 1, threads >= 1 are required")
+
+
+def load_models(name: str):
+    """(output model, chamfer model): open models bootstrap their chamfer stages on open-low."""
+    from uuomocap.solver_core.body_model import load_body_model
+
+    model = load_body_model(name)
+    return model, (load_body_model("open-low") if name in ("open-low", "open-full") else model)
+
+
+class Solver(Node):
+    Config = SolverNodeConfig
+    SUBSCRIBES = {
+        "markers": Port("markers/raw", types=("MarkerFrame",)),
+        "prior": Port("body/prior", types=("BodyPrior",), optional=True),
+    }
+    PUBLISHES = {"solved": "body/solved"}
+    STOP_TIMEOUT_S = 60  # a bootstrap in progress finishes before the node stops
+
+    def setup(self) -> None:
+        import torch
+
+        from uuomocap.solver_core.windowed_solver import WindowedSolverConfig
+
+        torch.set_num_threads(self.config.threads)
+        c = self.config
+        self.model, self.chamfer_model = load_models(c.body_model)
+        self.solver_config = replace(WindowedSolverConfig(), bootstrap_s=c.bootstrap_s, lag_frames=c.lag_frames, hop_frames=c.hop_frames,
+                                     estimate_iterations=c.estimate_iterations, smoothness_weight=c.smoothness_weight)
+        self.solver = None
+        self.rate_hz = 0.0
+        self.log.info("solver: %s, bootstrap %.1fs, lag %d frames", c.body_model, c.bootstrap_s, c.lag_frames)
+
+    def _make_solver(self, msg) -> None:
+        from uuomocap.solver_core.windowed_solver import WindowedSolver
+
+        self.rate_hz = float(msg.rate_hz) if msg.rate_hz > 0 else 0.0
+        self.solver = WindowedSolver(self.model, self.solver_config, msg.up_axis, self.rate_hz or None, self.chamfer_model)
+        for row in getattr(self, "_early_priors", []):
+            self.solver.add_prior(*row)
+        self._early_priors = []
+
+    def on_prior(self, msg, env) -> None:
+        row = (msg.stamp_ns, msg.global_orient, msg.body_pose, msg.betas, msg.valid, msg.camera_frame, msg.confidence)
+        if self.solver is None:
+            self._early_priors = (getattr(self, "_early_priors", []) + [row])[-512:]
+        else:
+            self.solver.add_prior(*row)
+
+    def on_markers(self, msg, env) -> None:
+        if self.solver is None:
+            self._make_solver(msg)
+        s = self.solver
+        results = s.push_markers(msg.stamp_ns, msg.positions, msg.visible, msg.track_ids, msg.frame_index)
+        self._publish(results)  # the estimate goes out before the smoothing pass runs
+        self._publish(s.refine_ready())
+        self.counters.update({f"solver_{k}": v for k, v in s.stats.items() if isinstance(v, int)})
+
+    def on_eos(self, port, env) -> None:
+        if port != "markers" or self.solver is None:
+            return
+        self._publish(self.solver.flush())
+        self.end_stream("solved")
+
+    def _publish(self, results) -> None:
+        if not results:
+            return
+        labels = self.solver.labels
+        faces = bary = None
+        parts: list[str] = []
+        if labels is not None:
+            faces, bary, parts = labels.face_ids.astype(np.int32), labels.bary.astype(np.float32), list(labels.parts)
+        for r in results:
+            if r.kind == "estimate" and not self.config.publish_estimates:
+                continue
+            self.publish("solved", SolvedFrame(
+                stamp_ns=int(r.stamp_ns), frame_index=int(r.frame_index), kind=r.kind,
+                betas=r.betas.astype(np.float32), poses=r.poses.astype(np.float32), trans=r.trans.astype(np.float32),
+                joints=r.joints.astype(np.float32), marker_faces=faces, marker_bary=bary, marker_parts=parts,
+                residual_m=float(r.residual_m), rate_hz=self.rate_hz, body_model=self.config.body_model,
+            ), int(r.stamp_ns))
+            self.count(f"published_{r.kind}")
