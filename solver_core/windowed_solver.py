@@ -48,7 +48,6 @@ from uuomocap.solver_core.body_params import (
     BodyParams,
     MarkerAttachment,
     interpolate_params,
-    pose_matrices,
     up_tensor,
 )
 from uuomocap.solver_core.inverse_kinematics import InverseKinematicsConfig
@@ -183,10 +182,36 @@ class _Frame:
         self.joints = None
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b over the last axis (broadcasting); np.cross's generality costs ~0.3 ms per call here."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
 def _skew_cross_columns(c: np.ndarray, rot: np.ndarray) -> np.ndarray:
     """-[c]x R for broadcastable c (...,3) and R (...,3,3): d(omega x c)/d(local rotation)."""
     cols = np.swapaxes(rot, -1, -2)  # rows = columns of R
-    return -np.swapaxes(np.cross(c[..., None, :], cols), -1, -2)
+    return -np.swapaxes(_cross(c[..., None, :], cols), -1, -2)
+
+
+def rotation_matrices(aa: np.ndarray) -> np.ndarray:
+    """Rodrigues' formula in float64 numpy: axis-angle (...,3) -> (...,3,3) (the solver's inner loop
+    converts 24 small rotations per frame; torch's per-call overhead dominated it)."""
+    phi = np.linalg.norm(aa, axis=-1)[..., None, None]
+    K = np.zeros(aa.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -aa[..., 2], aa[..., 1], -aa[..., 0]
+    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = aa[..., 2], -aa[..., 1], aa[..., 0]
+    small = phi < 1e-8
+    safe = np.where(small, 1.0, phi)
+    a = np.where(small, 1.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5, (1 - np.cos(safe)) / safe**2)
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+def rotation_vector(rot: np.ndarray) -> np.ndarray:
+    """(3,3) rotation -> axis-angle (3,) (norm <= pi)."""
+    return matrix_to_axis_angle(torch.as_tensor(np.asarray(rot, dtype=np.float64))).numpy()
 
 
 def wrap_rotation_vector(aa: np.ndarray) -> np.ndarray:
@@ -300,6 +325,7 @@ class WindowedSolver:
         threadpool_limits(1, user_api="blas")
         self.r_wc = camera_to_world_rotation(up_axis)
         self._priors: deque = deque(maxlen=config.prior_buffer)
+        self._prior72: deque = deque(maxlen=config.prior_buffer)
         self.stats: dict = {"frames": 0, "bootstraps": 0, "rebootstraps": 0, "new_tracks": 0, "slips": 0,
                             "rechecks": 0, "reassigned": 0, "bootstrap_seconds": []}
         self.timing = {"estimate_s": 0.0, "refine_s": 0.0, "estimates": 0, "refines": 0}
@@ -349,6 +375,9 @@ class WindowedSolver:
             return  # stamps must increase; a repeated / late prior is ignored
         self._priors.append((int(stamp_ns), go, bp, np.asarray(betas, dtype=np.float64).reshape(-1), bool(valid),
                              bool(camera_frame), float(confidence)))
+        # the per-frame pose prior: (72,) world root (before the yaw) + body, computed once per prior
+        root = rotation_vector(self.r_wc @ rotation_matrices(go)) if camera_frame else go
+        self._prior72.append((int(stamp_ns), bool(valid), np.concatenate([root, bp.reshape(-1)])))
 
     def add_markers(self, stamp_ns: int, positions, visible=None, track_ids=None, frame_index: int | None = None) -> list[WindowResult]:
         """One capture frame: positions (M,3) metres (NaN where missing), visible (M,) bool or None,
@@ -510,9 +539,8 @@ class WindowedSolver:
         return out
 
     def _reyaw(self, root: np.ndarray, old: float, new: float) -> np.ndarray:
-        up = self.up.double()
-        r_old = axis_angle_to_matrix(up * old) @ axis_angle_to_matrix(torch.as_tensor(root))
-        return matrix_to_axis_angle(axis_angle_to_matrix(-up * new) @ r_old).numpy()
+        up = self.up.double().numpy()
+        return rotation_vector(rotation_matrices(-up * new) @ rotation_matrices(up * old) @ rotation_matrices(root))
 
     def _attachment(self) -> MarkerAttachment:
         return MarkerAttachment(torch.as_tensor(self.face_ids), torch.as_tensor(self.bary, dtype=torch.float32),
@@ -521,6 +549,8 @@ class WindowedSolver:
     def _prepare_lock(self) -> None:
         """Precompute the rest-pose geometry of the assigned markers for the analytic Jacobian."""
         m = self.model
+        self._betas_row = self.betas.reshape(1, -1)
+        self._yaw_matrix = rotation_matrices(self.up.double().numpy() * self.yaw)
         assigned = np.flatnonzero(self.face_ids >= 0)
         self._assigned = assigned
         corners = m.faces[torch.as_tensor(self.face_ids[assigned])].reshape(-1)  # (3Ma,)
@@ -533,7 +563,7 @@ class WindowedSolver:
         bary = self.bary[assigned]
         self._bary_a = bary
         s = (self._vc * bary[:, :, None]).sum(1)
-        n = np.cross(self._vc[:, 1] - self._vc[:, 0], self._vc[:, 2] - self._vc[:, 0])
+        n = _cross(self._vc[:, 1] - self._vc[:, 0], self._vc[:, 2] - self._vc[:, 0])
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
         self._rest_point = s + self.config.ik.marker_offset_m * n  # the marker's rest position
         self._w_point = np.einsum("mc,mcj->mj", bary, self._wc)
@@ -548,10 +578,10 @@ class WindowedSolver:
         GJ (B,72,75) joint Jacobian."""
         B = theta.shape[0]
         c = self.config.ik
-        th = torch.as_tensor(theta.reshape(B, 24, 3), dtype=torch.float32)
+        rot = rotation_matrices(theta.reshape(B, 24, 3))
+        rot[:, 0] = self._yaw_matrix @ rot[:, 0]  # the world root is R_up(yaw) R(root_orient)
         with torch.no_grad():
-            rot = pose_matrices(th[:, 0], th[:, 1:], torch.tensor(self.yaw, dtype=torch.float32), self.up)
-            out = lbs.forward(self.model, self.betas.reshape(1, -1), rot, None, points=self._one_point)
+            out = lbs.forward(self.model, self._betas_row, torch.as_tensor(rot, dtype=torch.float32), None, points=self._one_point)
         A = out.skinning.double().numpy()  # (B,24,3,4)
         grot = out.joint_rotations.double().numpy()  # (B,24,3,3)
         pj = out.joints.double().numpy()  # (B,24,3) without trans
@@ -563,7 +593,7 @@ class WindowedSolver:
         mk = markers[:, a]
         w = vis[:, a].astype(np.float64)
         if c.offset_model == "normal":
-            n = np.cross(pc[:, :, 1] - pc[:, :, 0], pc[:, :, 2] - pc[:, :, 0])
+            n = _cross(pc[:, :, 1] - pc[:, :, 0], pc[:, :, 2] - pc[:, :, 0])
             n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
             pred = s + c.marker_offset_m * n
         else:  # the paper's distance model as a 3-vector: the point delta from the surface towards the marker
@@ -635,17 +665,10 @@ class WindowedSolver:
     # ------------------------------------------------------------------ per frame
     def _prior_at(self, stamp: int) -> np.ndarray | None:
         """(72,) world prior (before the yaw) of the latest valid prior at or before ``stamp``."""
-        best = None
-        for p in reversed(self._priors):
-            if p[0] <= stamp and p[4]:
-                best = p
-                break
-        if best is None:
-            return None
-        root = best[1]
-        if best[5]:
-            root = matrix_to_axis_angle(torch.as_tensor(self.r_wc @ axis_angle_to_matrix(torch.as_tensor(root)).numpy())).numpy()
-        return np.concatenate([root, best[2].reshape(-1)])
+        for st, valid, prior in reversed(self._prior72):
+            if st <= stamp and valid:
+                return prior
+        return None
 
     def _estimate(self, frame: _Frame) -> WindowResult:
         c = self.config
@@ -657,9 +680,8 @@ class WindowedSolver:
             theta0[3:] += prev.theta[3:] - pp.theta[3:]
             trans0 = trans0 + (prev.trans - pp.trans)
             # the root rotation continues by its last frame-to-frame rotation (no axis-angle wrap issue)
-            r_prev = axis_angle_to_matrix(torch.as_tensor(prev.theta[:3]))
-            r_pp = axis_angle_to_matrix(torch.as_tensor(pp.theta[:3]))
-            theta0[:3] = matrix_to_axis_angle(r_prev @ r_pp.transpose(0, 1) @ r_prev).numpy()
+            r_prev, r_pp = rotation_matrices(prev.theta[:3]), rotation_matrices(pp.theta[:3])
+            theta0[:3] = rotation_vector(r_prev @ r_pp.T @ r_prev)
         prior = self._prior_at(frame.stamp) if self.has_prior else None
         frame.prior = prior if prior is not None else (prev.theta.copy() if prev is not None else theta0.copy())
         mk, vis = frame.markers[None], frame.visible[None]
@@ -673,7 +695,7 @@ class WindowedSolver:
         return self._result(frame, "estimate", lin["root_world"][0])
 
     def _result(self, f: _Frame, kind: str, root_world: np.ndarray) -> WindowResult:
-        root = matrix_to_axis_angle(torch.as_tensor(root_world)).numpy()
+        root = rotation_vector(root_world)
         return WindowResult(f.stamp, f.index, kind, np.concatenate([root, f.theta[3:]]), f.trans.copy(),
                             f.joints.copy(), self.betas.double().numpy().copy(), float(f.residual), self.labels_version)
 

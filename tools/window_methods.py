@@ -1,0 +1,189 @@
+"""Session -> OUT.npz for the near-online sliding-window solver (method ``uuo-window``), and the
+frame-by-frame session driver ``uuomocap bench speed`` uses.
+
+The session is fed to ``WindowedSolver`` exactly as the ``solver`` node sees it: priors and
+marker frames in capture-stamp order (a prior is handed over once the marker clock reached its
+stamp).  OUT.npz holds the REFINED frames (what recordings export); the causal ``estimate`` of
+every frame is kept as extra keys ``estimate_poses`` / ``estimate_trans`` / ``estimate_joints``
+and, when the session has ground truth, its accuracy is in the info dict.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from uuomocap.methods import register_method
+
+
+@dataclass
+class StreamRun:
+    """Everything a streamed solve produced.  Per frame (T,): stamps; estimate_* / refined_*
+    poses (T,72), trans (T,3), joints (T,24,3); latency_*_ms (T,) NaN where not measured."""
+
+    stamps_ns: np.ndarray
+    rate_hz: float
+    estimate: dict
+    refined: dict
+    betas: np.ndarray
+    labels: object
+    bootstrap_s: float
+    steady_frames: int
+    steady_busy_s: float
+    steady_cpu_s: float
+    latency_estimate_ms: np.ndarray
+    latency_refined_ms: np.ndarray
+    stats: dict = field(default_factory=dict)
+
+    @property
+    def steady_fps(self) -> float:
+        """Wall-clock throughput (depends on what else the machine runs)."""
+        return self.steady_frames / self.steady_busy_s if self.steady_busy_s > 0 else float("nan")
+
+    @property
+    def steady_fps_cpu(self) -> float:
+        """Throughput per CPU-second of this process (what one free core would give)."""
+        return self.steady_frames / self.steady_cpu_s if self.steady_cpu_s > 0 else float("nan")
+
+
+def session_stream(session_dir: Path):
+    """(MarkerData, prior rows sorted by marker-clock stamp, up axis, body model, gt or None)."""
+    from uuomocap.protocol.session import load_session
+
+    s = load_session(Path(session_dir), load_prior=True, load_gt=True)
+    rows = []
+    if s.prior is not None:
+        p = s.prior
+        offset = int(round(float(s.clock_offset_s) * 1e9))
+        cam = bool(np.asarray(p.get("camera_frame", True)))
+        conf = np.asarray(p["confidence"]) if "confidence" in p else np.ones(len(p["stamps_ns"]))
+        betas = np.asarray(p["betas"])
+        for i, st in enumerate(np.asarray(p["stamps_ns"]).astype(np.int64)):
+            rows.append((int(st) + offset, np.asarray(p["global_orient"][i], np.float64), np.asarray(p["body_pose"][i], np.float64),
+                         np.asarray(betas[i] if betas.ndim == 2 else betas, np.float64), bool(p["valid"][i]), cam, float(conf[i])))
+    return s.markers, rows, s.up_axis, s.body_model, s.gt
+
+
+def stream_solve(session_dir: Path, body_model: str | None = None, config=None, realtime: bool = False,
+                 progress=None, max_frames: int | None = None) -> StreamRun:
+    """Feed a session frame by frame through ``WindowedSolver``.
+
+    realtime: after the bootstrap, frames 'arrive' on the capture clock (the driver sleeps when it
+    is ahead) so latencies are arrival -> result; otherwise frames are fed as fast as the solver
+    takes them (latency = processing time of the call that produced the result).
+    Steady-state throughput = frames after the bootstrap / time spent inside the solver for them.
+    """
+    import torch
+
+    from uuomocap.nodes.solver import load_models
+    from uuomocap.solver_core.windowed_solver import WindowedSolver, WindowedSolverConfig
+
+    torch.set_num_threads(1)
+    md, rows, up_axis, session_model, _ = session_stream(session_dir)
+    model, chamfer_model = load_models(body_model or session_model)
+    solver = WindowedSolver(model, config or WindowedSolverConfig(), up_axis, float(md.rate_hz), chamfer_model)
+    T = md.positions.shape[0] if max_frames is None else min(max_frames, md.positions.shape[0])
+    est = {"poses": np.full((T, 72), np.nan), "trans": np.full((T, 3), np.nan), "joints": np.full((T, 24, 3), np.nan)}
+    ref = {k: v.copy() for k, v in est.items()}
+    lat_e, lat_r = np.full(T, np.nan), np.full(T, np.nan)
+    arrival = np.full(T, np.nan)
+    stamps = np.asarray(md.stamps_ns[:T], dtype=np.int64)
+    bootstrap_s, busy, cpu, steady, clock0, pi = float("nan"), 0.0, 0.0, 0, None, 0
+
+    def take(results, now):
+        for r in results:
+            d = est if r.kind == "estimate" else ref
+            i = r.frame_index
+            d["poses"][i], d["trans"][i], d["joints"][i] = r.poses, r.trans, r.joints
+            if not np.isnan(arrival[i]):
+                (lat_e if r.kind == "estimate" else lat_r)[i] = 1000.0 * (now - arrival[i])
+
+    for i in range(T):
+        st = int(stamps[i])
+        while pi < len(rows) and rows[pi][0] <= st:
+            solver.add_prior(*rows[pi])
+            pi += 1
+        locked = solver.locked
+        if locked and realtime:
+            if clock0 is None:
+                clock0 = time.perf_counter() - st / 1e9
+            due = clock0 + st / 1e9
+            wait = due - time.perf_counter()
+            if wait > 0:
+                time.sleep(wait)
+            arrival[i] = due if wait > 0 else time.perf_counter()
+        elif locked:
+            arrival[i] = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
+        res = solver.push_markers(st, md.positions[i], md.visible[i], frame_index=i)
+        take(res, time.perf_counter())
+        res = solver.refine_ready()
+        t1 = time.perf_counter()
+        take(res, t1)
+        if locked:
+            busy += t1 - t0
+            cpu += time.process_time() - c0
+            steady += 1
+        elif solver.locked:
+            bootstrap_s = solver.stats["bootstrap_seconds"][-1]
+        if progress is not None:
+            progress(i)
+    take(solver.flush(), time.perf_counter())
+    return StreamRun(stamps, float(md.rate_hz), est, ref, solver.betas.double().numpy(), solver.labels, bootstrap_s, steady, busy, cpu,
+                     lat_e, lat_r, {**solver.stats, "timing": dict(solver.timing),
+                      "lag_frames": solver.config.lag_frames + solver.config.hop_frames - 1})
+
+
+def estimate_metrics(run: StreamRun, gt: dict, kind: str = "estimate") -> dict:
+    """MPJPE (mm) and MPJVE (mm/s) of the estimate (or refined) joints against gt.npz arrays."""
+    from uuomocap.solver_core.metrics import mpjpe, mpjve
+
+    joints = (run.estimate if kind == "estimate" else run.refined)["joints"]
+    gj = np.asarray(gt["joints"])[: len(joints)]
+    ok = np.isfinite(joints).all(axis=(1, 2))
+    if not ok.all():
+        raise ValueError(f"{int((~ok).sum())} frames have no {kind} result")
+    return {f"{kind}_mpjpe": mpjpe(joints, gj), f"{kind}_mpjve": mpjve(joints, gj, run.rate_hz)}  # mm, mm/s
+
+
+def uuo_window(session_dir: Path, out_npz: Path, body_model: str | None = None, progress=None, **opts) -> dict:
+    """Near-online sliding-window solver (refined output; the causal estimate as extra keys)."""
+    from uuomocap.protocol.session import write_npz
+
+    t0 = time.perf_counter()
+    run = stream_solve(Path(session_dir), body_model)
+    md, _, _, session_model, gt = session_stream(Path(session_dir))
+    labels = run.labels
+    M = md.positions.shape[1]
+    out = {
+        "betas": run.betas,
+        "poses": run.refined["poses"],
+        "trans": run.refined["trans"],
+        "mocap_framerate": np.float64(run.rate_hz),
+        "body_model": np.str_(body_model or session_model),
+        "joints": run.refined["joints"],
+        "stamps_ns": run.stamps_ns,
+        "marker_parts": np.array(labels.parts if labels else [""] * M, dtype="<U32"),
+        "marker_faces": (labels.face_ids if labels else np.full(M, -1)).astype(np.int64),
+        "marker_bary": (labels.bary if labels else np.zeros((M, 3))).astype(np.float64),
+        "method": np.str_("uuo-window"),
+        "estimate_poses": run.estimate["poses"],
+        "estimate_trans": run.estimate["trans"],
+        "estimate_joints": run.estimate["joints"],
+    }
+    secs = {"bootstrap": round(run.bootstrap_s, 3), "total": round(time.perf_counter() - t0, 3)}
+    out["stage_seconds"] = np.str_(json.dumps(secs))
+    write_npz(out_npz, out)
+    info = {"method": "uuo-window", "stage_seconds": secs, "steady_fps": round(run.steady_fps, 1),
+            "steady_fps_cpu": round(run.steady_fps_cpu, 1),
+            "rebootstraps": run.stats.get("rebootstraps", 0), "reassigned": run.stats.get("reassigned", 0)}
+    if gt is not None and "joints" in gt:
+        info.update({k: round(v, 3) for k, v in estimate_metrics(run, gt, "estimate").items()})
+    return info
+
+
+register_method("uuo-window", uuo_window, "near-online sliding-window solver (refined; estimate accuracy in info)")
