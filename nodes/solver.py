@@ -29,7 +29,7 @@ class SolverNodeConfig:
     lag_frames: int = 10  # fixed lag of the refined output
     hop_frames: int = 5  # frames finalised per smoothing pass
     estimate_iterations: int = 2
-    smoothness_weight: float = 1.0
+    smoothness_weight: float = 0.01
     publish_estimates: bool = True
     threads: int = 1  # torch intra-op threads (1 = deterministic and leaves a core to the graph)
 

@@ -1,0 +1,195 @@
+"""The near-online sliding-window solver: bootstrap, estimate + refined for every frame, accuracy
+next to the offline solver, change handling (occlusion, new tracks), bounded memory.
+
+One small generated session (30 Hz, 4 s, 40 markers) is bootstrapped once; the change-handling
+tests continue from copies of that locked solver.  The offline reference runs with the
+bootstrap's budgets (same stages, fewer iterations) to keep the test fast.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from uuomocap.solver_core.windowed_solver import WindowedSolver, WindowedSolverConfig, right_jacobian_so3
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    from uuomocap.synth import SampleConfig, make_session
+
+    d = tmp_path_factory.mktemp("win") / "s"
+    make_session(d, SampleConfig(motion="walk", rate_hz=30.0, duration_s=4.0, n_markers=40, seed=0, video=False))
+    return d
+
+
+@pytest.fixture(scope="module")
+def streamed(session):
+    """Feed the session through WindowedSolver like the solver node does."""
+    from uuomocap.nodes.solver import load_models
+    from uuomocap.window_methods import session_stream
+
+    torch.set_num_threads(1)
+    md, rows, up_axis, body_model, gt = session_stream(session)
+    model, chamfer = load_models(body_model)
+    cfg = replace(WindowedSolverConfig(), bootstrap_s=2.0, recheck_period_s=1.0, recheck_frames=24)
+    solver = WindowedSolver(model, cfg, up_axis, md.rate_hz, chamfer)
+    results, pi = [], 0
+    for i in range(md.positions.shape[0]):
+        st = int(md.stamps_ns[i])
+        while pi < len(rows) and rows[pi][0] <= st:
+            solver.add_prior(*rows[pi])
+            pi += 1
+        results += solver.add_markers(st, md.positions[i], md.visible[i])
+        if solver.locked and i + 1 == int(2.0 * md.rate_hz) + 1:
+            assert any(r.kind == "estimate" for r in results)  # the bootstrap window is estimated at once
+    before_flush = len([r for r in results if r.kind == "refined"])
+    results += solver.flush()
+    return {"solver": solver, "results": results, "md": md, "rows": rows, "gt": gt, "model": model,
+            "chamfer": chamfer, "before_flush": before_flush}
+
+
+def _frames(md, rows, start_frame, count, start_stamp, order):
+    """Frames of the session in ``order`` (ping-pong indices), re-stamped after ``start_stamp``,
+    with the prior rows of the source frames re-stamped the same way."""
+    period = int(round(1e9 / md.rate_hz))
+    prior_t = np.array([r[0] for r in rows])
+    for k in range(count):
+        j = order[(start_frame + k) % len(order)]
+        st = start_stamp + (k + 1) * period
+        i = min(int(np.searchsorted(prior_t, md.stamps_ns[j])), len(rows) - 1)
+        yield st, j, (st, *rows[i][1:])
+
+
+def _clone(streamed) -> WindowedSolver:
+    memo = {id(streamed["model"]): streamed["model"], id(streamed["chamfer"]): streamed["chamfer"]}
+    return copy.deepcopy(streamed["solver"], memo)
+
+
+def test_right_jacobian_matches_finite_differences():
+    from uuomocap.solver_core.windowed_solver import rotation_matrices
+
+    rng = np.random.default_rng(0)
+    for theta in (rng.normal(size=3), np.array([0.0, 0.0, 3.0]), np.zeros(3)):
+        jr = right_jacobian_so3(theta)
+        for k in range(3):
+            d = np.zeros(3)
+            d[k] = 1e-6
+            # R(theta)^T R(theta + d) ~= exp(J_r d)
+            delta = rotation_matrices(theta).T @ rotation_matrices(theta + d)
+            w = np.array([delta[2, 1] - delta[1, 2], delta[0, 2] - delta[2, 0], delta[1, 0] - delta[0, 1]]) / 2
+            np.testing.assert_allclose(w / 1e-6, jr[:, k], atol=1e-4)
+
+
+def test_every_frame_gets_an_estimate_and_a_refined_result(streamed):
+    T = streamed["md"].positions.shape[0]
+    res = streamed["results"]
+    est = sorted(r.frame_index for r in res if r.kind == "estimate")
+    ref = sorted(r.frame_index for r in res if r.kind == "refined")
+    assert est == list(range(T)) and ref == list(range(T))
+    assert 0 < streamed["before_flush"] < T  # refined frames flow during the stream, the rest at flush
+    s = streamed["solver"]
+    assert s.stats["bootstraps"] == 1 and s.stats["rechecks"] >= 1
+    labels = s.labels
+    assert labels is not None and (labels.face_ids >= 0).sum() >= 0.9 * len(labels.face_ids)
+
+
+def test_refined_accuracy_close_to_offline(streamed, session):
+    from uuomocap.solver_core.metrics import mpjpe, mpjve
+    from uuomocap.solver_core.windowed_solver import fast_bootstrap_config
+    from uuomocap.solver_methods import inputs_from_session, run_staged_solver
+
+    gt = streamed["gt"]
+    T = streamed["md"].positions.shape[0]
+    rate = streamed["md"].rate_hz
+    joints = {k: np.zeros((T, 24, 3)) for k in ("estimate", "refined")}
+    for r in streamed["results"]:
+        joints[r.kind][r.frame_index] = r.joints
+    offline, _ = run_staged_solver(inputs_from_session(session), "uuo", config=fast_bootstrap_config())
+    gj = np.asarray(gt["joints"])[:T]
+    off, ref, est = mpjpe(offline.joints, gj), mpjpe(joints["refined"], gj), mpjpe(joints["estimate"], gj)
+    # at test sizes (4 s, 40 markers, 2 s bootstrap) within a generous factor of the offline solve
+    print(f"\nMPJPE refined {ref:.1f} estimate {est:.1f} offline {off:.1f} mm")
+    assert ref < 1.5 * off + 10.0, (ref, est, off)
+    assert est < 1.5 * off + 15.0, (ref, est, off)
+    # the smoothing pass is smoother than the causal estimate
+    assert mpjve(joints["refined"], gj, rate) <= mpjve(joints["estimate"], gj, rate) + 1.0
+
+
+def test_occlusion_gap_keeps_correspondence(streamed):
+    s = _clone(streamed)
+    md, rows = streamed["md"], streamed["rows"]
+    n = md.positions.shape[0]
+    order = np.concatenate([np.arange(n - 1, 0, -1), np.arange(n)])  # continue backwards: continuous motion
+    k = int(np.flatnonzero(s.face_ids >= 0)[0])
+    face, bary = s.face_ids[k], s.bary[k].copy()
+    last = int(md.stamps_ns[-1])
+    residuals = {"before": [], "after": []}
+    for step, (st, j, prior) in enumerate(_frames(md, rows, 0, 40, last, order)):
+        s.add_prior(*prior)
+        pos = md.positions[j].copy()
+        vis = md.visible[j].copy()
+        if 5 <= step < 25:  # a 20-frame occlusion gap
+            pos[k] = np.nan
+            vis[k] = False
+        out = s.add_markers(st, pos, vis)
+        assert out and out[0].kind == "estimate"
+        if step < 5 or step >= 30:
+            residuals["before" if step < 5 else "after"].append(out[0].residual_m)
+    assert s.face_ids[k] == face and np.allclose(s.bary[k], bary)
+    # the marker came back onto its old surface point: the fit is as good as before the gap
+    assert np.mean(residuals["after"]) < 1.5 * np.mean(residuals["before"]) + 0.002, residuals
+
+
+def test_new_marker_track_gets_assigned(streamed):
+    s = _clone(streamed)
+    md, rows = streamed["md"], streamed["rows"]
+    n = md.positions.shape[0]
+    order = np.concatenate([np.arange(n - 1, 0, -1), np.arange(n)])
+    k = int(np.flatnonzero(s.face_ids >= 0)[3])
+    ids = np.arange(md.positions.shape[1])
+    last = int(md.stamps_ns[-1])
+    version = s.labels_version
+    assigned_at = None
+    for step, (st, j, prior) in enumerate(_frames(md, rows, 0, 30, last, order)):
+        s.add_prior(*prior)
+        if step == 2:
+            ids = ids.copy()
+            ids[k] = 1000  # the tracker gave slot k to a new track: a new marker
+        s.add_markers(st, md.positions[j], md.visible[j], track_ids=ids)
+        if step == 2:
+            assert s.face_ids[k] == -1  # forgotten at once
+        if step > 2 and assigned_at is None and s.face_ids[k] >= 0:
+            assigned_at = step
+    cfg = s.config
+    assert assigned_at is not None and assigned_at - 2 >= cfg.new_track_frames - 1
+    assert s.stats["new_tracks"] >= 1 and s.labels_version > version
+    # the new assignment fits: the marker's residual under the estimate is small
+    out = s.add_markers(last + 10**9, md.positions[order[31]], md.visible[order[31]], track_ids=ids)
+    a = list(s._assigned)
+    lin = s._linearize(s._history[-1].theta[None], s._history[-1].trans[None], s._history[-1].markers[None],
+                       s._history[-1].visible[None], jacobian=False)
+    assert lin["dist"][0][a.index(k)] < 0.03
+    assert out[0].kind == "estimate"
+
+
+def test_buffers_do_not_grow_with_the_take(streamed):
+    s = _clone(streamed)
+    md, rows = streamed["md"], streamed["rows"]
+    n = md.positions.shape[0]
+    order = np.concatenate([np.arange(n - 1, 0, -1), np.arange(n)])
+    last = int(md.stamps_ns[-1])
+    sizes = {}
+    for step, (st, j, prior) in enumerate(_frames(md, rows, 0, 700, last, order)):
+        s.add_prior(*prior)  # a prior every frame: more than the prior ring holds
+        s.add_markers(st, md.positions[j], md.visible[j])
+        if step + 1 in (500, 700):
+            sizes[step + 1] = s.buffer_sizes()
+    assert sizes[500] == sizes[700], sizes
+    c = s.config
+    assert sizes[700]["pending"] <= c.lag_frames + c.hop_frames and sizes[700]["priors"] == c.prior_buffer
+    assert sizes[700]["history"] == c.history_frames
