@@ -84,6 +84,10 @@ def fast_bootstrap_config() -> SolverConfig:
 class WindowedSolverConfig:
     # Issue 6 "Bootstrap": seconds of markers (+ prior) the offline solver runs on.
     bootstrap_s: float = 2.5
+    # Wait up to this many more seconds of markers for video priors covering the bootstrap window
+    # (priors within prior_tolerance_s of the newest frame count as covering it).
+    prior_wait_s: float = 3.0
+    prior_tolerance_s: float = 0.25
     # Beyond the paper (speed): the bootstrap window is decimated to this rate (paper: 30 Hz markers).
     bootstrap_rate_hz: float = 30.0
     # The offline staged solver used for (re-)bootstraps.
@@ -462,11 +466,22 @@ class WindowedSolver:
             dt = np.diff([f.stamp for f in b])
             if (dt > 0).all():
                 self.rate_hz = float(1e9 / np.median(dt))
-        return len(b) >= self._boot_frames_needed()
+        needed = self._boot_frames_needed()
+        if len(b) < needed:
+            return False
+        # The video prior lags the markers in a live graph (estimator latency, or a replay that
+        # bursts frames at start-up): wait up to prior_wait_s more of markers for priors that
+        # cover the window, else the bootstrap would start from a neutral body.  In lockstep the
+        # priors up to every frame are there, so this never waits (deterministic).
+        last = b[-1].stamp
+        if self._priors and self._priors[-1][0] >= last - int(self.config.prior_tolerance_s * 1e9):
+            return True
+        return (last - b[needed - 1].stamp) / 1e9 >= self.config.prior_wait_s
 
     def _collect_bootstrap(self, frame: _Frame) -> list[WindowResult]:
         if self._boot is None:
-            self._boot = deque(maxlen=max(3, int(math.ceil(self.config.bootstrap_s * 1000.0))))
+            c = self.config  # bounded: at most bootstrap_s + prior_wait_s of frames at up to 1 kHz
+            self._boot = deque(maxlen=max(3, int(math.ceil((c.bootstrap_s + c.prior_wait_s) * 1000.0))))
         self._boot.append(frame)
         if self._boot_ready():
             return self._bootstrap(list(self._boot), rebootstrap=False)
