@@ -40,7 +40,7 @@ def _handler(args) -> int:
     t1 = time.perf_counter()
     use_graph = not args.offline and _graph_plugins_present()
     if use_graph:
-        from uuomocap.launcher import LaunchError, launch
+        from uuomocap.launcher import LaunchError, launch, parse_cli_args
 
         recording = out / "stream.mcap"
         pred = recording.with_suffix(".npz")
@@ -48,8 +48,9 @@ def _handler(args) -> int:
             stale.unlink(missing_ok=True)
         print("[2/3] replaying through the graph: launch/replay_session.yaml (lockstep)", flush=True)
         try:
-            rc = launch("replay_session", {"session": str(session), "out": str(recording), "lockstep": "true"},
-                        quiet=not args.verbose)
+            # Same typing as `uuomocap launch ... key:=value` on the command line.
+            cli_args = parse_cli_args([f"session:={session}", f"out:={recording}", "lockstep:=true"])
+            rc = launch("replay_session", cli_args, quiet=not args.verbose)
         except LaunchError as exc:
             raise UserError(str(exc)) from None
         if rc != 0 or not pred.exists():
