@@ -1,0 +1,204 @@
+"""``uuomocap solve``: offline solve of a whole session (or loose marker + prior/video files) -> OUT.npz."""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from uuomocap.commands import UserError, add_json_flag, emit
+
+SOLVER_METHODS = ("uuo", "uuo-paper", "video-rr", "no-mht", "markers-only", "oracle-labeled", "uuo-matching", "uuo-stage2", "uuo-stage4")
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "solve",
+        help="solve unlabeled markers (+ video prior) offline into body poses and marker labels (OUT.npz)",
+        description=(
+            "Solve a whole capture at once with the paper's staged method (Milef et al. 2024): marker "
+            "segmentation, marker-part matching (full or partial body, decided automatically), yaw "
+            "hypotheses through pose fitting / marker-surface correspondence / inverse kinematics, and a "
+            "refinement round. Input: a session directory (markers.c3d + prior.npz or video.mp4), or "
+            "--markers FILE (.c3d/.trc) with --prior prior.npz or --video FILE (runs the video estimator). "
+            "Output OUT.npz (AMASS layout, capture world frame, one frame per marker frame): betas, poses "
+            "(F,72), trans, joints, and per marker its body part (marker_parts), face and barycentric "
+            "coordinates. Prints the decisions and per-stage seconds. Other --method values run the "
+            "paper's baselines and ablations on the same input."
+        ),
+    )
+    parser.add_argument("session", nargs="?", type=Path, help="session directory (omit with --markers)")
+    parser.add_argument("--markers", type=Path, help="marker file (.c3d or .trc) instead of a session")
+    parser.add_argument("--prior", type=Path, help="prior.npz (video prior) to use")
+    parser.add_argument("--video", type=Path, help="run the video estimator on this video to get the prior")
+    parser.add_argument("--clock-offset", type=float, default=None,
+                        help="marker_time = video_time + offset, seconds (default: the session's, else 0)")
+    parser.add_argument("--up-axis", choices=("+x", "-x", "+y", "-y", "+z", "-z"), default=None,
+                        help="override the marker file's up axis")
+    parser.add_argument("--out", type=Path, required=True, help="output OUT.npz")
+    parser.add_argument("--method", default="uuo", choices=SOLVER_METHODS,
+                        help="uuo (default) | uuo-paper (as published) | video-rr | no-mht | markers-only | "
+                             "oracle-labeled (needs gt.npz) | uuo-matching / uuo-stage2 / uuo-stage4 (stage ablation)")
+    parser.add_argument("--body-model", default=None,
+                        help="open-low, open-full or an SMPL .pkl/.npz (default: the session's, else open-low)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_json_flag(parser)
+    parser.set_defaults(func=_run)
+
+
+class _TqdmProgress:
+    """One tqdm bar per solver stage (iterations and loss), on stderr."""
+
+    def __init__(self, quiet: bool):
+        self.quiet = quiet
+        self.bar = None
+
+    def stage_start(self, name: str, detail: str = "") -> None:
+        if self.quiet:
+            return
+        from tqdm import tqdm
+
+        self.bar = tqdm(desc=f"{name}{' (' + detail + ')' if detail else ''}", unit="it", file=sys.stderr, leave=False)
+
+    def stage_step(self, name: str, iterations: int, loss: float) -> None:
+        if self.bar is not None:
+            self.bar.update(max(0, iterations - self.bar.n))
+            self.bar.set_postfix(loss=f"{loss:.4g}")
+
+    def stage_end(self, name: str, seconds: float) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+        if not self.quiet:
+            print(f"  {name}: {seconds:.2f} s", file=sys.stderr)
+
+
+def _estimate_video_prior(video: Path, body_model: str) -> dict:
+    try:
+        from uuomocap.video_prior_run import estimate_prior, parse_estimator
+    except ImportError as exc:
+        raise UserError(f"the video estimator is not available in this installation ({exc})") from None
+    from tqdm import tqdm
+
+    if not video.is_file():
+        raise UserError(f"video not found: {video}")
+    try:
+        prior, _ = estimate_prior(str(video), parse_estimator("blazepose"), body_model=body_model,
+                                  progress=lambda total: tqdm(total=total, unit="frame", desc="video prior", file=sys.stderr, leave=False),
+                                  log=lambda msg: print(msg, file=sys.stderr))
+    except Exception as exc:  # the estimator's own errors are user-facing (missing models, bad video)
+        raise UserError(f"video estimator failed on {video}: {' '.join(str(exc).split())}") from None
+    if not prior.valid.any():
+        raise UserError(f"no person found in any frame of {video}")
+    return prior.to_arrays()
+
+
+def _read_prior(path: Path) -> dict:
+    from uuomocap.protocol.prior_file import PriorFileError, read_prior_npz
+
+    if not path.is_file():
+        raise UserError(f"prior not found: {path}")
+    try:
+        return read_prior_npz(path)
+    except (PriorFileError, ValueError, OSError) as exc:
+        raise UserError(f"{path}: {exc}") from None
+
+
+def build_inputs(args):
+    from uuomocap.protocol.markerio import MarkerFileError, read_markers
+    from uuomocap.protocol.session import SessionError, load_session
+    from uuomocap.solver_methods import SolverInputs, prior_for_markers
+
+    if (args.session is None) == (args.markers is None):
+        raise UserError("give either a SESSION directory or --markers FILE (not both)")
+    if args.prior is not None and args.video is not None:
+        raise UserError("give --prior or --video, not both")
+    gt = None
+    if args.session is not None:
+        try:
+            s = load_session(args.session, load_prior=args.prior is None and args.video is None, load_gt=args.method == "oracle-labeled")
+        except SessionError as exc:
+            raise UserError(str(exc)) from None
+        md, up, offset, body_model, gt = s.markers, s.up_axis, s.clock_offset_s, s.body_model, s.gt
+        prior_arrays = s.prior
+        if args.prior is not None:
+            prior_arrays = _read_prior(args.prior)
+        elif args.video is not None or (prior_arrays is None and s.video_file is not None and args.method != "markers-only"):
+            prior_arrays = _estimate_video_prior(args.video or s.video_file, args.body_model or body_model)
+        source = str(args.session)
+    else:
+        try:
+            md = read_markers(args.markers)
+        except MarkerFileError as exc:
+            raise UserError(str(exc)) from None
+        up, offset, body_model = md.up_axis, 0.0, "open-low"
+        prior_arrays = None
+        if args.prior is not None:
+            prior_arrays = _read_prior(args.prior)
+        elif args.video is not None:
+            prior_arrays = _estimate_video_prior(args.video, args.body_model or body_model)
+        source = str(args.markers)
+    if args.up_axis:
+        up = args.up_axis
+    if args.clock_offset is not None:
+        offset = float(args.clock_offset)
+    body_model = args.body_model or body_model
+    prior = shape = None
+    if prior_arrays is not None and args.method != "markers-only":
+        try:
+            prior, shape = prior_for_markers(prior_arrays, up, md.stamps_ns, offset)
+        except ValueError as exc:
+            raise UserError(f"prior: {exc}") from None
+    if prior is None and args.method not in ("markers-only", "oracle-labeled"):
+        raise UserError(f"method {args.method!r} needs a video prior: give --prior prior.npz or --video FILE "
+                        "(or use --method markers-only)")
+    if args.method == "oracle-labeled" and (gt is None or "marker_faces" not in gt):
+        raise UserError("--method oracle-labeled needs a session with gt.npz (true marker attachments)")
+    markers = np.asarray(md.positions, dtype=np.float64)
+    if md.n_frames < 3 or not np.isfinite(markers).any():
+        raise UserError(f"{source}: too few frames or no visible marker to solve")
+    return SolverInputs(markers, np.asarray(md.visible, bool), float(md.rate_hz), np.asarray(md.stamps_ns, np.int64), up, prior,
+                        shape, body_model, gt, source)
+
+
+def _run(args) -> int:
+    from uuomocap.methods import get_method
+    from uuomocap.solver_core.body_model import BodyModelError
+
+    import uuomocap.solver_methods  # noqa: F401  (registers the methods)
+
+    inputs = build_inputs(args)
+    if args.out.suffix != ".npz":
+        raise UserError(f"--out must end in .npz, got {args.out}")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    try:
+        info = get_method(args.method)(args.session, args.out, inputs.body_model, progress=_TqdmProgress(args.quiet), inputs=inputs)
+    except BodyModelError as exc:
+        raise UserError(str(exc)) from None
+    except ValueError as exc:
+        raise UserError(" ".join(str(exc).split())) from None
+    info["seconds"] = round(time.perf_counter() - t0, 3)
+    info["out"] = str(args.out)
+    info["frames"], info["markers"] = int(inputs.markers.shape[0]), int(inputs.markers.shape[1])
+    emit(args, info, _summary(info, args.method))
+    return 0
+
+
+def _summary(info: dict, method: str) -> str:
+    lines = [f"wrote {info['out']}: {info['frames']} frames, {info['markers']} markers, method {method}, {info['seconds']:.1f} s"]
+    if "full_body" in info:
+        kind = "full body" if info["full_body"] else "partial body: " + ", ".join(info.get("part_joints", []))
+        lines.append(f"markers cover: {kind} (marker/body box volume {info.get('volume_ratio', float('nan')):.2f}; "
+                     f"{info.get('clusters', '?')} rigid marker groups)")
+    if "chosen_yaw_deg" in info:
+        hyp = ", ".join(f"{h['stage2_yaw_deg']:.0f} deg: {h['marker_fit_mm']:.1f} mm" for h in info.get("hypotheses", []))
+        lines.append(f"yaw: {info['chosen_yaw_deg']:.1f} deg (hypotheses {hyp})")
+    if "stage5_marker_fit_mm" in info:
+        lines.append(f"mean marker fit: {info['stage5_marker_fit_mm']:.1f} mm")
+    secs = info.get("stage_seconds") or {}
+    if secs:
+        lines.append("seconds per stage: " + ", ".join(f"{k} {v:.2f}" for k, v in secs.items()) + f" (total {sum(secs.values()):.2f})")
+    return "\n".join(lines)
