@@ -460,6 +460,12 @@ class WindowedSolver:
     def _boot_frames_needed(self) -> int:
         return max(3, int(math.ceil(self.config.bootstrap_s * (self.rate_hz or 120.0))))
 
+    def _new_boot_buffer(self) -> deque:
+        """Ring for a (re-)bootstrap window: bootstrap_s + prior_wait_s of frames (at the known
+        rate, or up to 1 kHz before the rate is known) - bounded whatever the stream does."""
+        c = self.config
+        return deque(maxlen=max(3, int(math.ceil((c.bootstrap_s + c.prior_wait_s) * (self.rate_hz or 1000.0))) + 1))
+
     def _boot_ready(self) -> bool:
         b = self._boot
         if self.rate_hz is None and len(b) >= 3:
@@ -480,8 +486,7 @@ class WindowedSolver:
 
     def _collect_bootstrap(self, frame: _Frame) -> list[WindowResult]:
         if self._boot is None:
-            c = self.config  # bounded: at most bootstrap_s + prior_wait_s of frames at up to 1 kHz
-            self._boot = deque(maxlen=max(3, int(math.ceil((c.bootstrap_s + c.prior_wait_s) * 1000.0))))
+            self._boot = self._new_boot_buffer()
         self._boot.append(frame)
         if self._boot_ready():
             return self._bootstrap(list(self._boot), rebootstrap=False)
@@ -528,13 +533,28 @@ class WindowedSolver:
         self._slip_run[:] = 0
         self._degrade_run = 0
         if rebootstrap:
-            # re-express the frames still in flight in the new yaw (their world pose is unchanged)
+            # Frames still in flight: re-express them in the new yaw (their world pose is unchanged;
+            # a frame sits in several rings, so once each), take the bootstrap's solution where the
+            # window covers them, then settle them under the new lock (batched Gauss-Newton).
+            seen: set[int] = set()
             for f in list(self._pending) + list(self._context) + list(self._history):
-                f.theta[:3] = self._reyaw(f.theta[:3], old_yaw, self.yaw)
-            last = frames[-1]
+                if id(f) not in seen:
+                    seen.add(id(f))
+                    f.theta[:3] = self._reyaw(f.theta[:3], old_yaw, self.yaw)
             full = interpolate_params(res.params, sel, np.arange(len(frames)))
-            last.theta = np.concatenate([full.root_orient[-1].double().numpy(), full.body_pose[-1].double().numpy().reshape(-1)])
-            last.trans = full.trans[-1].double().numpy()
+            where = {id(f): i for i, f in enumerate(frames)}
+            for f in self._pending:
+                i = where.get(id(f))
+                if i is not None:
+                    f.theta = np.concatenate([full.root_orient[i].double().numpy(), full.body_pose[i].double().numpy().reshape(-1)])
+                    f.trans = full.trans[i].double().numpy()
+            pend = list(self._pending)
+            if pend:
+                theta, trans = self._gauss_newton(np.stack([f.theta for f in pend]), np.stack([f.trans for f in pend]),
+                                                  np.stack([f.markers for f in pend]), np.stack([f.visible for f in pend]),
+                                                  np.stack([f.prior for f in pend]), c.estimate_iterations)
+                for i, f in enumerate(pend):
+                    f.theta, f.trans = theta[i], trans[i]
             self.stats["bootstrap_seconds"].append(round(time.perf_counter() - t0, 3))
             return []
         full = interpolate_params(res.params, sel, np.arange(len(frames)))
@@ -869,7 +889,7 @@ class WindowedSolver:
         bad = (frame.residual > c.degrade_threshold_m) or (n_vis >= 4 and (vis & ~(self.face_ids >= 0)).sum() > 0.5 * n_vis)
         self._degrade_run = self._degrade_run + 1 if bad else 0
         if self._degrade_run >= c.degrade_s * rate and self._boot is None:
-            self._boot = deque(maxlen=self._boot_frames_needed())
+            self._boot = self._new_boot_buffer()
             self._degrade_run = 0
         # periodic re-check of every correspondence on the recent window
         self._since_recheck += 1

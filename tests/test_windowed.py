@@ -193,3 +193,24 @@ def test_buffers_do_not_grow_with_the_take(streamed):
     c = s.config
     assert sizes[700]["pending"] <= c.lag_frames + c.hop_frames and sizes[700]["priors"] == c.prior_buffer
     assert sizes[700]["history"] == c.history_frames
+
+
+def test_degraded_fit_rebootstraps_while_estimating(streamed):
+    """Markers that no longer match their correspondences (here: every marker index permuted, as
+    after a subject change) degrade the fit; the solver keeps estimating, re-bootstraps on a new
+    window and fits again."""
+    s = _clone(streamed)
+    md, rows = streamed["md"], streamed["rows"]
+    n = md.positions.shape[0]
+    order = np.concatenate([np.arange(n - 1, 0, -1), np.arange(n)])
+    perm = np.random.default_rng(1).permutation(md.positions.shape[1])
+    last = int(md.stamps_ns[-1])
+    residuals = []
+    for st, j, prior in _frames(md, rows, 0, 130, last, order):
+        s.add_prior(*prior)
+        out = s.add_markers(st, md.positions[j][perm], md.visible[j][perm])
+        assert out and out[0].kind == "estimate"  # estimates never stop
+        residuals.append(out[0].residual_m)
+    assert s.stats["rebootstraps"] == 1, s.stats
+    assert np.mean(residuals[:10]) > s.config.degrade_threshold_m
+    assert np.mean(residuals[-10:]) < 0.015, residuals[-10:]
