@@ -90,9 +90,14 @@ def yaw_matrix(yaw: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
     return axis_angle_to_matrix(up.to(yaw.dtype) * yaw.reshape(()))
 
 
-def pose_matrices(root_orient: torch.Tensor, body_pose: torch.Tensor, yaw: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
-    """(T,24,3,3) local rotations with the yaw applied to the root: R_up(yaw) R(root)."""
-    root = yaw_matrix(yaw, up) @ axis_angle_to_matrix(root_orient)
+def pose_matrices(
+    root_orient: torch.Tensor, body_pose: torch.Tensor, yaw: torch.Tensor, up: torch.Tensor, root_offset: torch.Tensor | None = None
+) -> torch.Tensor:
+    """(T,24,3,3) local rotations with the yaw applied to the root: R_up(yaw) [root_offset] R(root)."""
+    root = axis_angle_to_matrix(root_orient)
+    if root_offset is not None:
+        root = root_offset @ root
+    root = yaw_matrix(yaw, up) @ root
     body = axis_angle_to_matrix(body_pose)
     return torch.cat([root[:, None], body], dim=1)
 
@@ -106,14 +111,31 @@ def pose_body(
     yaw: torch.Tensor,
     up: torch.Tensor,
     points: lbs.SurfacePoints | None = None,
+    root_offset: torch.Tensor | None = None,
 ) -> lbs.LBSOutput:
-    """Pose the model in the world for every frame (differentiable in every argument)."""
-    rot = pose_matrices(root_orient, body_pose, yaw, up)
+    """Pose the model in the world for every frame (differentiable in every argument).
+    root_offset (3,3): an extra rotation between the yaw and the root (the camera tilt correction)."""
+    rot = pose_matrices(root_orient, body_pose, yaw, up, root_offset)
     return lbs.forward(model, betas.reshape(1, -1), rot, trans, points=points)
 
 
 def pose_params(model, params: BodyParams, up: torch.Tensor, points: lbs.SurfacePoints | None = None) -> lbs.LBSOutput:
     return pose_body(model, params.root_orient, params.body_pose, params.trans, params.betas, params.yaw, up, points)
+
+
+def tilt_matrix(tilt: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
+    """Rotation (3,3) by the small rotation vector ``tilt`` (2,) radians about two horizontal axes
+    (the video camera's unknown pitch and roll; the yaw is separate)."""
+    from uuomocap.solver_core.prior_preparation import horizontal_basis
+
+    right, forward = horizontal_basis(up.double().numpy())
+    basis = torch.tensor(np.stack([right, forward]), dtype=tilt.dtype)
+    return axis_angle_to_matrix(tilt @ basis)
+
+
+def apply_root_offset(root_orient: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:
+    """(T,3) axis-angle roots premultiplied by the rotation ``offset`` (3,3)."""
+    return matrix_to_axis_angle(offset @ axis_angle_to_matrix(root_orient))
 
 
 def wrap_angle(angle: float) -> float:

@@ -45,11 +45,6 @@ class InverseKinematicsConfig:
     smoothness_weight: float = 0.0
     # Beyond the paper: Geman-McClure scale (metres) against mislabelled / ghost markers.
     robust_scale_m: float | None = None
-    # Beyond the paper (attachment refinement): penalty on each marker's tangential slide
-    # (mean over markers of slide^2 in distance units); small, so the pose prior decides.
-    slide_weight: float = 0.01
-    # Beyond the paper (attachment refinement): penalty on changing the 9.5 mm offset.
-    offset_change_weight: float = 1.0
     # Paper Sec. "Implementation": L-BFGS lr 1.0 for IK; early stopping instead of 10k iterations.
     lbfgs: LBFGSConfig = LBFGSConfig(lr=1.0, max_iterations=200, iterations_per_step=10, rel_tol=1e-4)
     # Energies measure distances in this unit (regularizers.DISTANCE_UNIT_M explains why it matters).
@@ -108,68 +103,12 @@ def solve_inverse_kinematics(
     result at Stage 5), in the same yaw convention as ``init``; shape_prior (B,); init: warm start.
     Returns (BodyParams, optimisation report).
     """
-    params, _, report = _solve(model, markers, visible, attachment, prior_root, prior_body_pose, shape_prior, init, up,
-                               config, free, rate_hz, on_step, slide=False)
-    return params, report
-
-
-def refine_attachment_and_pose(
-    model,
-    markers: torch.Tensor,
-    visible: torch.Tensor,
-    attachment: MarkerAttachment,
-    prior_root: torch.Tensor,
-    prior_body_pose: torch.Tensor,
-    shape_prior: torch.Tensor,
-    init: BodyParams,
-    up: torch.Tensor,
-    config: InverseKinematicsConfig = InverseKinematicsConfig(),
-    free: FreeParameters = FreeParameters(yaw=False),
-    rate_hz: float = 30.0,
-    on_step: Callable[[int, float], None] | None = None,
-) -> tuple[BodyParams, MarkerAttachment, OptimizationReport]:
-    """IK that also slides every marker's attachment over the skin (beyond the paper, MoSh-like
-    latent markers).
-
-    Alternating Stage 3 and Stage 4 stalls in a valley: a marker attached a little off along a
-    limb plus a slightly rotated limb fit the markers as well as the truth.  Optimising the pose
-    and the attachments TOGETHER lets the pose prior - whose per-frame noise averages out over the
-    sequence - pick the right point in that valley.  Each marker gets a tangential slide (a, b)
-    and a normal offset change h in its face's frame; the slid point is then projected back onto
-    the rest-pose surface -> new face + barycentric.  Returns (params, attachment, report).
-    """
-    params, slide, report = _solve(model, markers, visible, attachment, prior_root, prior_body_pose, shape_prior, init,
-                                   up, config, free, rate_hz, on_step, slide=True)
-    return params, reproject_attachment(model, attachment, slide, params.betas), report
-
-
-@torch.no_grad()
-def reproject_attachment(model, attachment: MarkerAttachment, slide: torch.Tensor, betas: torch.Tensor) -> MarkerAttachment:
-    """Move each assigned marker's surface point by its tangential slide (Ma,2) metres in the rest
-    pose and project it back onto the rest-pose surface."""
-    from uuomocap.solver_core.mesh import closest_point_on_mesh
-
-    rest = lbs.forward(model, betas.reshape(1, -1), torch.zeros(1, 24, 3)).vertices[0]
-    assigned = attachment.assigned
-    corners = rest[model.faces[attachment.face_ids[assigned]]]  # (Ma,3,3)
-    bary = attachment.bary[assigned]
-    point = (corners * bary[..., None]).sum(1)
-    normal = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0], dim=-1)
-    normal = normal / normal.norm(dim=-1, keepdim=True).clamp(min=1e-12)
-    e1 = corners[:, 1] - corners[:, 0]
-    e1 = e1 / e1.norm(dim=-1, keepdim=True).clamp(min=1e-12)
-    e2 = torch.linalg.cross(normal, e1, dim=-1)
-    moved = point + slide[:, :1] * e1 + slide[:, 1:2] * e2
-    _, face, new_bary = closest_point_on_mesh(moved, rest, model.faces)
-    face_ids = attachment.face_ids.clone()
-    all_bary = attachment.bary.clone()
-    face_ids[assigned] = face
-    all_bary[assigned] = new_bary.to(all_bary.dtype)
-    return MarkerAttachment(face_ids, all_bary, attachment.score_m.clone())
+    return _solve(model, markers, visible, attachment, prior_root, prior_body_pose, shape_prior, init, up, config, free,
+                  rate_hz, on_step)
 
 
 def _solve(model, markers, visible, attachment, prior_root, prior_body_pose, shape_prior, init, up, config, free, rate_hz,
-           on_step, slide: bool):
+           on_step):
     if config.offset_model not in ("normal", "distance"):
         raise ValueError(f"offset_model must be 'normal' or 'distance', got {config.offset_model!r}")
     unit = config.distance_unit_m
@@ -188,20 +127,11 @@ def _solve(model, markers, visible, attachment, prior_root, prior_body_pose, sha
     trans = init.trans.clone().requires_grad_(free.trans)
     betas = init.betas.clone().requires_grad_(free.betas)
     yaw = init.yaw.clone().reshape(()).requires_grad_(free.yaw)
-    # per assigned marker: tangential slide (a, b) and normal offset change h, in ``unit``
-    shift = torch.zeros(int(assigned.sum()), 3, requires_grad=slide)
 
     def energy() -> torch.Tensor:
         out = pose_body(model, root, body, trans, betas, yaw, up, corners_pts)
         corners = out.vertices.reshape(out.vertices.shape[0], -1, 3, 3) / unit
         pts, nrm = posed_marker_frames(corners, bary)
-        extra = None
-        if slide:
-            e1 = corners[:, :, 1] - corners[:, :, 0]
-            e1 = e1 / e1.norm(dim=-1, keepdim=True).clamp(min=1e-12)
-            e2 = torch.linalg.cross(nrm, e1, dim=-1)
-            pts = pts + shift[:, 0, None] * e1 + shift[:, 1, None] * e2 + shift[:, 2, None] * nrm
-            extra = config.slide_weight * (shift[:, :2] ** 2).sum(-1).mean() + config.offset_change_weight * (shift[:, 2] ** 2).mean()
         if config.offset_model == "normal":
             sq = ((pts + delta * nrm - mk) ** 2).sum(-1)
         else:
@@ -209,8 +139,6 @@ def _solve(model, markers, visible, attachment, prior_root, prior_body_pose, sha
         if robust is not None:
             sq = robust * sq / (sq + robust)
         total = config.marker_weight * (sq * weight).sum() / weight_sum
-        if extra is not None:
-            total = total + extra
         total = total + config.pose_weight * pose_prior_energy(
             body, prior_body_pose, root if config.prior_includes_root else None, prior_root
         )
@@ -219,6 +147,5 @@ def _solve(model, markers, visible, attachment, prior_root, prior_body_pose, sha
             total = total + config.smoothness_weight * smooth_scale * temporal_smoothness_energy(out.joints / unit)
         return total
 
-    report = run_lbfgs([root, body, trans, betas, yaw, shift], energy, config.lbfgs, on_step)
-    params = BodyParams(root.detach(), body.detach(), trans.detach(), betas.detach(), yaw.detach())
-    return params, shift.detach()[:, :2] * unit, report
+    report = run_lbfgs([root, body, trans, betas, yaw], energy, config.lbfgs, on_step)
+    return BodyParams(root.detach(), body.detach(), trans.detach(), betas.detach(), yaw.detach()), report

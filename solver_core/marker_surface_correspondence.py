@@ -35,6 +35,10 @@ class CorrespondenceConfig:
     shortlist_vertices: int = 6
     # Beyond the paper (speed): at most this many evenly spaced frames vote.
     frames: int = 200
+    # Beyond the paper: when refining (Stage 5), a marker may move at most this far over the rest
+    # surface.  The paper's Stage 5 searches the whole body again, which lets a marker jump to a
+    # limb that happens to follow it (e.g. the other forearm when the hands are held together).
+    refine_radius_m: float | None = 0.05
     # Beyond the paper: Weiszfeld iterations of the geometric median.
     median_iterations: int = 20
 
@@ -61,6 +65,25 @@ def _geometric_median(points: torch.Tensor, weights: torch.Tensor, iterations: i
     return est
 
 
+def _restrict_near_previous(model, betas, allowed, previous: MarkerAttachment, mean_dist, radius_m: float):
+    """Set the score of vertices farther than ``radius_m`` (rest pose) from each previously
+    assigned marker's point to +inf (the nearest vertex always stays)."""
+    rest = lbs.forward(model, betas.reshape(1, -1), torch.zeros(1, 24, 3)).vertices[0]
+    ok = previous.assigned
+    if not bool(ok.any()):
+        return mean_dist
+    corners = rest[model.faces[previous.face_ids[ok]]]
+    prev_pts = (corners * previous.bary[ok][..., None]).sum(1)  # (Mo,3)
+    dist = torch.cdist(prev_pts, rest[allowed])  # (Mo,Na)
+    far = dist > radius_m
+    far[torch.arange(far.shape[0]), dist.argmin(dim=1)] = False
+    out = mean_dist.clone()
+    sub = out[ok]
+    sub[far] = float("inf")
+    out[ok] = sub
+    return out
+
+
 def _evenly_spaced(indices: np.ndarray, count: int) -> np.ndarray:
     if len(indices) <= count:
         return indices
@@ -77,11 +100,14 @@ def find_marker_surface_points(
     allowed_vertex_ids: torch.Tensor | None = None,
     config: CorrespondenceConfig = CorrespondenceConfig(),
     vertex_faces: torch.Tensor | None = None,
+    previous: MarkerAttachment | None = None,
 ) -> MarkerAttachment:
     """Stage 3 for a window: every marker's surface point under the body ``params``.
 
     markers (T,M,3) metres NaN where missing; visible (T,M) bool; params: the fitted body for the
-    same T frames; allowed_vertex_ids: restrict to these vertices (None = all).
+    same T frames; allowed_vertex_ids: restrict to these vertices (None = all); previous: an earlier
+    attachment to refine locally (Stage 5) - each marker then only searches the rest-pose surface
+    within ``config.refine_radius_m`` of its previous point.
     Markers never visible get face -1.  Returns MarkerAttachment.
     """
     if config.method not in ("surface", "vertex"):
@@ -102,6 +128,8 @@ def find_marker_surface_points(
     mk = markers[sel]
     vis = visible[sel]
     mean_dist = mean_distance_to_targets(mk, vis, posed)  # (M,Na)
+    if previous is not None and config.refine_radius_m is not None:
+        mean_dist = _restrict_near_previous(model, params.betas, allowed, previous, mean_dist, config.refine_radius_m)
     seen = vis.any(dim=0)
     k = min(config.shortlist_vertices, allowed.numel())
     best_local = torch.topk(mean_dist, k, dim=1, largest=False).indices  # (M,k)
@@ -128,7 +156,9 @@ def find_marker_surface_points(
     patches = []
     for m in range(m_count):
         fs: list[int] = []
-        for v in best_vertices[m].tolist():
+        finite = torch.isfinite(mean_dist[m, best_local[m]])
+        finite[0] = True
+        for v in best_vertices[m][finite].tolist():
             for f in vertex_faces[v].tolist():
                 if allowed_set is not None and not all(int(x) in allowed_set for x in faces[f].tolist()):
                     continue

@@ -12,7 +12,7 @@ Implementation (cheap and batched, beyond the paper's plain L-BFGS):
    axis - on a subsample of frames;
 2. the best few candidates are then refined by L-BFGS over yaw, translation and shape with the
    paper's energy, and the lowest energy is kept.
-The translation starts from the per-frame marker median (paper).  Whether the markers cover the
+The translation starts from aligning per-frame marker and body centres (paper: medians).  Whether the markers cover the
 full body is decided from bounding-box volumes (published code: marker box / body box > 0.4 ->
 full body); a full body has the single candidate "all joints".
 """
@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from uuomocap.solver_core.body_params import fill_nan_rows, pose_body, yaw_matrix
+from uuomocap.solver_core.body_params import apply_root_offset, fill_nan_rows, pose_body, yaw_matrix
 from uuomocap.solver_core.chamfer import gather_points, nearest_indices
 from uuomocap.solver_core.pose_fitting import chamfer_to_body
 from uuomocap.solver_core.optimization import LBFGSConfig, run_lbfgs
@@ -51,6 +51,9 @@ class PartMatchingConfig:
     frames: int = 48
     # Beyond the paper (speed): closed-form ICP iterations per (candidate, yaw start).
     icp_iterations: int = 15
+    # Beyond the paper: the registration may also tilt the prior by up to this much (the video
+    # camera's unknown pitch/roll; the paper assumes a level camera).  0 = yaw only.
+    max_tilt_deg: float = 20.0
     # Beyond the paper (speed): candidates refined by L-BFGS after the ICP ranking.
     refine_top: int = 3
     # Bound on the enumeration: K is capped here for partial bodies (a part of the paper's
@@ -69,6 +72,7 @@ class YawStart:
     start_deg: float
     yaw: float
     error: float
+    tilt: np.ndarray = field(default_factory=lambda: np.eye(3))  # (3,3) camera tilt correction
 
 
 @dataclass
@@ -85,6 +89,7 @@ class PartMatch:
     candidates_tested: int
     yaw_starts: list[YawStart] = field(default_factory=list)
     ranking: list[tuple[tuple[int, ...], float]] = field(default_factory=list)  # (joints, E_S) best first
+    tilt: np.ndarray = field(default_factory=lambda: np.eye(3))  # (3,3) root offset (camera tilt) at ``yaw``
 
 
 # ----------------------------------------------------------------------------- geometry helpers
@@ -141,46 +146,82 @@ def rigid_yaw_icp(
     up: torch.Tensor,
     yaw_start: torch.Tensor,
     iterations: int,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Closed-form ICP for a yaw about ``up`` plus a per-frame translation, batched over hypotheses.
+    max_tilt_rad: float = 0.0,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Closed-form ICP for a yaw about ``up`` (and, if ``max_tilt_rad`` > 0, a tilt of at most that
+    angle about a horizontal axis) and a translation, batched over hypotheses.
 
-    points: (H, S, N, 3) model points (already centred on the rotation centre); markers: (S, M, 3);
+    The translation of frame t aligns the model's centroid with the markers' reference point
+    (``marker_centroid``; the paper aligns medians) plus ONE offset shared by all frames: per-frame free translations let a body slide along
+    itself (a standing body's markers fit it 20 cm too low as well), a shared offset cannot.
+    points: (H, S, N, 3) model points relative to the rotation centre; markers: (S, M, 3);
     visible: (S, M) bool; yaw_start: (H,) radians.
-    Returns (yaw (H,), offset (H, S, 3), mean squared distance (H,)) with world = R(yaw) p + offset.
+    Returns (yaw (H,), offset (H, S, 3), mean squared distance (H,), tilt (H,3,3)) with
+    world = R(yaw) tilt p + offset.
     """
     hyp, frames, _, _ = points.shape
-    mk = torch.nan_to_num(markers)
     w = visible.to(points.dtype)  # (S, M)
-    wsum = w.sum(dim=1).clamp(min=1.0)  # (S,)
-    # Only frames with markers carry information; per-frame centroids need >=1 marker.
+    wall = w.sum().clamp(min=1.0)
+    m_ref = torch.as_tensor(marker_centroid(markers.double().numpy(), visible.numpy().astype(bool)), dtype=points.dtype)
+    mt = torch.nan_to_num(markers) - m_ref[:, None]  # (S,M,3) marker coordinates about the frame's reference
+    p_ref = points.mean(dim=2)  # (H,S,3)
+    pt = points - p_ref[:, :, None]
     yaw = yaw_start.clone()
-    m_centroid = (mk * w[..., None]).sum(1) / wsum[:, None]  # (S,3)
-    # start: align the model's centroid to the marker median-ish centroid
-    rot = _batch_yaw(yaw, up)  # (H,3,3)
-    p_centroid = points.mean(dim=2)  # (H,S,3)
-    offset = m_centroid[None] - torch.einsum("hij,hsj->hsi", rot, p_centroid)
+    tilt = torch.eye(3, dtype=points.dtype).expand(hyp, 3, 3).clone()
+    shift = torch.zeros(hyp, 3, dtype=points.dtype)
     err = torch.zeros(hyp)
     for _ in range(iterations + 1):
-        rot = _batch_yaw(yaw, up)
-        posed = torch.einsum("hij,hsnj->hsni", rot, points) + offset[:, :, None]
-        idx = nearest_indices(
-            mk[None].expand(hyp, -1, -1, -1).reshape(hyp * frames, -1, 3), posed.reshape(hyp * frames, -1, 3)
-        ).reshape(hyp, frames, -1)
-        q = gather_points(points.reshape(hyp * frames, -1, 3), idx.reshape(hyp * frames, -1)).reshape(hyp, frames, -1, 3)
-        resid = torch.einsum("hij,hsmj->hsmi", rot, q) + offset[:, :, None] - mk[None]
-        err = ((resid**2).sum(-1) * w[None]).sum((1, 2)) / w.sum().clamp(min=1.0)
-        # closed-form update: centre per frame, 1-D Procrustes about up, then translation
-        q_c = (q * w[None, ..., None]).sum(2) / wsum[None, :, None]
-        qt = q - q_c[:, :, None]
-        mt = mk[None] - m_centroid[None, :, None]
-        q_perp = qt - (qt @ up)[..., None] * up
-        cross = torch.linalg.cross(up.expand_as(qt), qt, dim=-1)
-        a = ((mt * q_perp).sum(-1) * w[None]).sum((1, 2))
-        b = ((mt * cross).sum(-1) * w[None]).sum((1, 2))
-        yaw = torch.atan2(b, a)
-        rot = _batch_yaw(yaw, up)
-        offset = m_centroid[None] - torch.einsum("hij,hsj->hsi", rot, q_c)
-    return yaw, offset, err
+        rot = _batch_yaw(yaw, up) @ tilt
+        posed = torch.einsum("hij,hsnj->hsni", rot, pt) + shift[:, None, None]
+        idx = nearest_indices(mt[None].expand(hyp, -1, -1, -1).reshape(hyp * frames, -1, 3), posed.reshape(hyp * frames, -1, 3))
+        q = gather_points(pt.reshape(hyp * frames, -1, 3), idx).reshape(hyp, frames, -1, 3)
+        resid = torch.einsum("hij,hsmj->hsmi", rot, q) + shift[:, None, None] - mt[None]
+        err = ((resid**2).sum(-1) * w[None]).sum((1, 2)) / wall
+        # closed-form update over all frames: centre, 1-D Procrustes about up, shared offset
+        q_c = (q * w[None, ..., None]).sum((1, 2)) / wall  # (H,3)
+        m_c = (mt * w[..., None]).sum((0, 1)) / wall  # (3,)
+        qt = q - q_c[:, None, None]
+        mc = mt - m_c
+        if max_tilt_rad > 0:
+            yaw, tilt = _kabsch_yaw_tilt(qt, mc, w, up, max_tilt_rad)
+        else:
+            q_perp = qt - (qt @ up)[..., None] * up
+            cross = torch.linalg.cross(up.expand_as(qt), qt, dim=-1)
+            a = ((mc[None] * q_perp).sum(-1) * w[None]).sum((1, 2))
+            b = ((mc[None] * cross).sum(-1) * w[None]).sum((1, 2))
+            yaw = torch.atan2(b, a)
+        rot = _batch_yaw(yaw, up) @ tilt
+        shift = m_c[None] - torch.einsum("hij,hj->hi", rot, q_c)
+    # world = R (p - p_ref) + m_ref + shift = R p + (m_ref + shift - R p_ref)
+    offset = m_ref[None] + shift[:, None] - torch.einsum("hij,hsj->hsi", rot, p_ref)
+    return yaw, offset, err, tilt
+
+
+def _kabsch_yaw_tilt(q: torch.Tensor, m: torch.Tensor, w: torch.Tensor, up: torch.Tensor, max_tilt: float):
+    """Best rotation (Kabsch) taking centred model points q (H,S,M,3) to centred markers m (S,M,3),
+    split as R = R_up(yaw) T with T about a horizontal axis, T's angle clamped to ``max_tilt``.
+    Returns (yaw (H,), T (H,3,3))."""
+    from uuomocap.solver_core.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+
+    cov = torch.einsum("hsmi,smj,sm->hij", q, m, w)  # sum q m^T
+    u, _, vh = torch.linalg.svd(cov)
+    d = torch.sign(torch.det(vh.transpose(1, 2) @ u.transpose(1, 2)))
+    fix = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1))
+    rot = vh.transpose(1, 2) @ fix @ u.transpose(1, 2)  # (H,3,3): m ~ R q
+    # T0: the smallest rotation taking up to R up (horizontal axis); Z = T0^T R turns about up;
+    # R = T0 Z = Z (Z^T T0 Z) and Z^T T0 Z = Z^T R is again about a horizontal axis.
+    a = rot @ up
+    axis = torch.linalg.cross(up.expand_as(a), a, dim=-1)
+    sin = axis.norm(dim=-1, keepdim=True)
+    angle = torch.atan2(sin[:, 0], (a * up).sum(-1))
+    t0 = axis_angle_to_matrix(axis / sin.clamp(min=1e-12) * angle[:, None])
+    z = t0.transpose(1, 2) @ rot
+    yaw = (matrix_to_axis_angle(z) @ up)
+    tilt = _batch_yaw(yaw, up).transpose(1, 2) @ rot
+    vec = matrix_to_axis_angle(tilt)
+    norm = vec.norm(dim=-1, keepdim=True)
+    vec = vec * (norm.clamp(max=max_tilt) / norm.clamp(min=1e-12))
+    return yaw, axis_angle_to_matrix(vec)
 
 
 def _batch_yaw(yaw: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
@@ -189,17 +230,24 @@ def _batch_yaw(yaw: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
     return axis_angle_to_matrix(yaw[:, None] * up[None].to(yaw.dtype))
 
 
-def marker_median(markers: np.ndarray, visible: np.ndarray) -> np.ndarray:
-    """(T,3) per-frame median of visible markers (paper's translation initialisation); frames
-    without markers are interpolated."""
-    m = np.where(visible[..., None], markers, np.nan)
-    with np.errstate(all="ignore"):
-        import warnings
+def marker_centroid(markers: np.ndarray, visible: np.ndarray) -> np.ndarray:
+    """(T,3) per-frame reference point of the markers for the translation initialisation.
 
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            med = np.nanmedian(m, axis=1)
-    return fill_nan_rows(med)
+    The paper uses the per-frame marker median; a median (or mean) jumps whenever a marker
+    disappears or the middle marker changes.  Here: the markers' overall centroid plus the mean
+    displacement of the VISIBLE markers from their own time averages, which moves only with the
+    markers.  Frames without a visible marker are interpolated.
+    """
+    vis = visible & np.isfinite(markers).all(axis=2)
+    filled = np.where(vis[..., None], markers, 0.0)
+    count = vis.sum(axis=0)
+    seen = count > 0
+    own_mean = filled.sum(axis=0) / np.maximum(count, 1)[:, None]  # (M,3)
+    centre = own_mean[seen].mean(axis=0)
+    disp = np.where(vis[..., None], markers - own_mean[None], 0.0).sum(axis=1)
+    n = vis.sum(axis=1)
+    out = np.where(n[:, None] > 0, centre + disp / np.maximum(n, 1)[:, None], np.nan)
+    return fill_nan_rows(out)
 
 
 # ----------------------------------------------------------------------------- the matching
@@ -254,27 +302,30 @@ def match_markers_to_part(
 
     unit2 = config.distance_unit_m**2
     yaw_starts = torch.tensor([math.radians(d) for d in config.yaw_starts_deg], dtype=torch.float32)
-    scored: list[tuple[float, tuple[int, ...], torch.Tensor, torch.Tensor, torch.Tensor]] = []
+    scored: list[tuple] = []  # (best energy, joints, yaw (H,), offset (H,S,3), energy (H,), tilt (H,3,3))
     for cand in candidates:
         vid = torch.nonzero(torch.isin(dominant, torch.tensor(cand))).reshape(-1)
         if vid.numel() == 0:
             continue
         pts = pts_all[:, vid]
-        yaw, offset, err = rigid_yaw_icp(pts[None].expand(len(yaw_starts), -1, -1, -1), mk, vis, up, yaw_starts, config.icp_iterations)
+        yaw, offset, err, tilt = rigid_yaw_icp(
+            pts[None].expand(len(yaw_starts), -1, -1, -1), mk, vis, up, yaw_starts, config.icp_iterations,
+            math.radians(config.max_tilt_deg),
+        )
         energy = config.chamfer_weight * err / unit2
-        scored.append((float(energy.min()), cand, yaw, offset, energy))
+        scored.append((float(energy.min()), cand, yaw, offset, energy, tilt))
     if not scored:
         raise ValueError("no part candidate has vertices")
     scored.sort(key=lambda s: s[0])
 
     # refine the best few with the paper's energy over (yaw, translation, shape)
     refined: list[tuple[float, tuple[int, ...], float, torch.Tensor, torch.Tensor]] = []
-    for energy0, cand, yaw, offset, energies in scored[: max(1, config.refine_top)]:
+    for energy0, cand, yaw, offset, energies, tilt in scored[: max(1, config.refine_top)]:
         best_h = int(torch.argmin(energies))
         vid = torch.nonzero(torch.isin(dominant, torch.tensor(cand))).reshape(-1)
         e, y, tr, b = _refine_candidate(
             model, mk, vis, prior_root[sel_t], prior_body_pose[sel_t], shape_prior, up, vid,
-            float(yaw[best_h]), offset[best_h] - centre[:, 0], config,
+            float(yaw[best_h]), offset[best_h] - centre[:, 0], config, tilt[best_h],
         )
         refined.append((e, cand, y, tr, b))
     refined.sort(key=lambda r: r[0])
@@ -285,11 +336,13 @@ def match_markers_to_part(
     # yaw hypotheses of the chosen candidate: each start's ICP optimum (the refined one replaces its own)
     starts = []
     for h, start in enumerate(config.yaw_starts_deg):
-        starts.append(YawStart(start, float(best[2][h]), float(best[4][h])))
+        starts.append(YawStart(start, float(best[2][h]), float(best[4][h]), best[5][h].double().numpy()))
     best_h = int(torch.argmin(best[4]))
-    starts[best_h] = YawStart(starts[best_h].start_deg, best_yaw, best_energy)
+    best_tilt = best[5][best_h]
+    starts[best_h] = YawStart(starts[best_h].start_deg, best_yaw, best_energy, best_tilt.double().numpy())
 
-    trans = full_translation(model, markers, visible, prior_root, prior_body_pose, best_betas, up, vid, torch.tensor(best_yaw))
+    trans = full_translation(model, markers, visible, apply_root_offset(prior_root, best_tilt), prior_body_pose, best_betas, up,
+                             vid, torch.tensor(best_yaw))
     ranking = [(r[1], r[0]) for r in refined] + [(s[1], s[0]) for s in scored[len(refined):]]
     return PartMatch(
         joints=tuple(best_cand),
@@ -304,10 +357,11 @@ def match_markers_to_part(
         candidates_tested=len(scored),
         yaw_starts=starts,
         ranking=ranking,
+        tilt=best_tilt.double().numpy(),
     )
 
 
-def _refine_candidate(model, mk, vis, root, body_pose, shape_prior, up, vid, yaw0, trans0, config):
+def _refine_candidate(model, mk, vis, root, body_pose, shape_prior, up, vid, yaw0, trans0, config, tilt):
     """L-BFGS over (yaw, per-frame translation, shape) with the paper's E_S; pose fixed to the prior.
 
     trans0 (S,3): the ICP result as SMPL translation.  ICP places the body as R (x0 - c) + offset
@@ -321,7 +375,7 @@ def _refine_candidate(model, mk, vis, root, body_pose, shape_prior, up, vid, yaw
     mk_u = mk / unit
 
     def loss() -> torch.Tensor:
-        cham, _ = chamfer_to_body(model, mk_u, vis, root, body_pose, trans, betas, yaw, up, vid, unit)
+        cham, _ = chamfer_to_body(model, mk_u, vis, root, body_pose, trans, betas, yaw, up, vid, unit, None, tilt)
         shape = ((betas - shape_prior) ** 2).mean()
         return config.chamfer_weight * cham + config.shape_weight * shape
 
@@ -336,26 +390,26 @@ def wrap(angle: float) -> float:
 
 
 @torch.no_grad()
+@torch.no_grad()
 def full_translation(
-    model, markers, visible, prior_root, prior_body_pose, betas, up, vertex_ids, yaw, iterations: int = 5
+    model, markers, visible, prior_root, prior_body_pose, betas, up, vertex_ids, yaw, iterations: int = 8
 ) -> torch.Tensor:
-    """(T,3) per-frame translation at a fixed yaw: the candidate's nearest vertices' centroid moved
-    onto the markers' centroid, a few closed-form ICP rounds (translation only).  Frames without a
-    visible marker are interpolated."""
+    """(T,3) translation for every frame at a fixed yaw: the markers' reference point minus the
+    candidate vertices' centroid (the paper aligns medians) plus one offset shared by all frames, found by
+    closed-form ICP (see ``rigid_yaw_icp`` for why it is shared)."""
     frames = markers.shape[0]
     out = pose_body(model, prior_root, prior_body_pose, torch.zeros(frames, 3), betas, yaw, up)
     pts = out.vertices[:, torch.as_tensor(vertex_ids)]
     vis_np = visible.numpy().astype(bool)
-    med = torch.as_tensor(marker_median(markers.double().numpy(), vis_np), dtype=torch.float32)
-    trans = med - pts.median(dim=1).values
+    ref = torch.as_tensor(marker_centroid(markers.double().numpy(), vis_np), dtype=torch.float32)
+    base = ref - pts.mean(dim=1)
     mk = torch.nan_to_num(markers)
     w = visible.float()
-    wsum = w.sum(1)
+    wall = w.sum().clamp(min=1.0)
+    shift = torch.zeros(3)
     for _ in range(iterations):
+        trans = base + shift
         idx = nearest_indices(mk, pts + trans[:, None])
         q = gather_points(pts, idx)
-        delta = ((mk - q - trans[:, None]) * w[..., None]).sum(1) / wsum.clamp(min=1.0)[:, None]
-        trans = trans + delta
-    trans_np = trans.double().numpy()
-    trans_np[wsum.numpy() == 0] = np.nan
-    return torch.as_tensor(fill_nan_rows(trans_np), dtype=torch.float32)
+        shift = shift + ((mk - q - trans[:, None]) * w[..., None]).sum((0, 1)) / wall
+    return base + shift

@@ -19,7 +19,7 @@ from typing import Callable
 
 import torch
 
-from uuomocap.solver_core.body_params import BodyParams, FreeParameters, pose_body
+from uuomocap.solver_core.body_params import BodyParams, FreeParameters, apply_root_offset, pose_body, tilt_matrix
 from uuomocap.solver_core import lbs
 from uuomocap.solver_core.chamfer import nearest_indices, vertex_face_table
 from uuomocap.solver_core.mesh import closest_point_on_triangles
@@ -47,6 +47,13 @@ class PoseFittingConfig:
     prior_includes_root: bool = True
     # Beyond the paper: weight of the joint-acceleration term (0 = the paper's per-frame energy).
     smoothness_weight: float = 0.0
+    # Beyond the paper: also estimate the video camera's tilt (pitch/roll, one rotation for the
+    # whole take).  The paper maps camera axes to the world assuming a level camera; a camera
+    # looking down by 10 degrees tilts every prior root by 10 degrees, which the root prior
+    # would otherwise keep.
+    estimate_tilt: bool = True
+    # Beyond the paper: weight of the tilt's prior (squared radians).
+    tilt_weight: float = 0.1
     # Beyond the paper: Geman-McClure scale (metres) against ghost markers; None = plain squares.
     robust_scale_m: float | None = None
     # Paper Sec. "Implementation": L-BFGS lr 0.1 at Stage 2; early stopping instead of 10k iterations.
@@ -71,13 +78,15 @@ def fit_pose(
     free: FreeParameters = FreeParameters(),
     rate_hz: float = 30.0,
     on_step: Callable[[int, float], None] | None = None,
-) -> tuple[BodyParams, OptimizationReport]:
+) -> tuple[BodyParams, OptimizationReport, torch.Tensor]:
     """Stage 2 on a window of T frames.
 
     markers (T,M,3) metres, NaN where missing; visible (T,M) bool; prior_root (T,3) and
     prior_body_pose (T,23,3): the video prior (root before yaw); shape_prior (B,);
     init: warm start (yaw in ``init.yaw``); target_vertex_ids (Nc,) vertices of the matched part
-    or None for every vertex.  Returns (fitted BodyParams, optimisation report).
+    or None for every vertex.  Returns (fitted BodyParams, optimisation report, tilt (3,3)): the
+    estimated camera tilt is folded into the returned root orientations, and later stages must
+    compare them with ``apply_root_offset(prior_root, tilt)``.
     """
     unit = config.distance_unit_m
     root = init.root_orient.clone().requires_grad_(free.root_orient)
@@ -85,6 +94,7 @@ def fit_pose(
     trans = init.trans.clone().requires_grad_(free.trans)
     betas = init.betas.clone().requires_grad_(free.betas)
     yaw = init.yaw.clone().reshape(()).requires_grad_(free.yaw)
+    tilt = torch.zeros(2, requires_grad=config.estimate_tilt and free.root_orient)
     markers_u = markers / unit
     smooth_scale = (rate_hz / config.smoothness_reference_hz) ** 4
 
@@ -98,13 +108,16 @@ def fit_pose(
     table = vertex_face_table(model.faces, model.v_template.shape[0]) if config.data_term == "surface" else None
 
     def energy() -> torch.Tensor:
+        offset = tilt_matrix(tilt, up) if tilt.requires_grad else None
         if table is None:
-            cham, joints = chamfer_to_body(model, markers_u, visible, root, body, trans, betas, yaw, up, targets, unit, robust)
+            cham, joints = chamfer_to_body(model, markers_u, visible, root, body, trans, betas, yaw, up, targets, unit, robust, offset)
         else:
             cham, joints = surface_chamfer_to_body(
                 model, markers_u, visible, root, body, trans, betas, yaw, up, targets, table, unit,
-                config.marker_offset_m / unit, robust,
+                config.marker_offset_m / unit, robust, offset,
             )
+        if offset is not None:
+            cham = cham + config.tilt_weight * (tilt**2).sum()
         total = config.chamfer_weight * cham
         total = total + config.pose_weight * pose_prior_energy(
             body, prior_body_pose, root if config.prior_includes_root else None, prior_root
@@ -114,9 +127,10 @@ def fit_pose(
             total = total + config.smoothness_weight * smooth_scale * temporal_smoothness_energy(joints / unit)
         return total
 
-    report = run_lbfgs([root, body, trans, betas, yaw], energy, config.lbfgs, on_step)
-    fitted = BodyParams(root.detach(), body.detach(), trans.detach(), betas.detach(), yaw.detach())
-    return fitted, report
+    report = run_lbfgs([root, body, trans, betas, yaw, tilt], energy, config.lbfgs, on_step)
+    offset = tilt_matrix(tilt.detach(), up)
+    fitted = BodyParams(apply_root_offset(root.detach(), offset), body.detach(), trans.detach(), betas.detach(), yaw.detach())
+    return fitted, report, offset
 
 
 def chamfer_to_body(
@@ -132,6 +146,7 @@ def chamfer_to_body(
     target_vertex_ids: torch.Tensor,
     unit: float,
     robust_scale: float | None = None,
+    root_offset: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Unidirectional chamfer (paper Eq. chamfer_unidirectional) from markers to posed target vertices.
 
@@ -142,10 +157,10 @@ def chamfer_to_body(
     whole mesh, at a fraction of the cost.
     """
     with torch.no_grad():
-        full = pose_body(model, root, body, trans, betas, yaw, up, lbs.SurfacePoints.from_vertex_ids(target_vertex_ids))
+        full = pose_body(model, root, body, trans, betas, yaw, up, lbs.SurfacePoints.from_vertex_ids(target_vertex_ids), root_offset)
         idx_local = nearest_indices(markers_u, full.vertices / unit)  # (T,M) into target_vertex_ids
         used, inverse = torch.unique(idx_local, return_inverse=True)
-    sub = pose_body(model, root, body, trans, betas, yaw, up, lbs.SurfacePoints.from_vertex_ids(target_vertex_ids[used]))
+    sub = pose_body(model, root, body, trans, betas, yaw, up, lbs.SurfacePoints.from_vertex_ids(target_vertex_ids[used]), root_offset)
     nearest = torch.gather(sub.vertices / unit, 1, inverse.unsqueeze(-1).expand(-1, -1, 3))
     sq = ((nearest - torch.nan_to_num(markers_u)) ** 2).sum(-1)
     if robust_scale is not None:
@@ -170,6 +185,7 @@ def surface_chamfer_to_body(
     unit: float,
     offset_u: float,
     robust_scale: float | None = None,
+    root_offset: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Marker-to-surface data term: mean over visible markers of || m - (q + offset n) ||^2 with q
     the closest point of the faces around the marker's nearest target vertex and n that face's
@@ -180,7 +196,7 @@ def surface_chamfer_to_body(
     frames = markers_u.shape[0]
     mk = torch.nan_to_num(markers_u)
     with torch.no_grad():
-        allv = pose_body(model, root, body, trans, betas, yaw, up).vertices / unit  # (T,N,3)
+        allv = pose_body(model, root, body, trans, betas, yaw, up, None, root_offset).vertices / unit  # (T,N,3)
         tgt = allv if target_vertex_ids.numel() == allv.shape[1] else allv[:, target_vertex_ids]
         nearest = target_vertex_ids[nearest_indices(mk, tgt)]  # (T,M) vertex ids
         cand = vertex_faces[nearest]  # (T,M,K) face ids
@@ -194,7 +210,7 @@ def surface_chamfer_to_body(
         face = torch.gather(cand, 2, k_best[..., None])[..., 0]
         bary = torch.gather(bary_all, 2, k_best[..., None, None].expand(-1, -1, 1, 3))[:, :, 0]
         used, inverse = torch.unique(model.faces[face], return_inverse=True)  # inverse (T,M,3)
-    sub = pose_body(model, root, body, trans, betas, yaw, up, lbs.SurfacePoints.from_vertex_ids(used))
+    sub = pose_body(model, root, body, trans, betas, yaw, up, lbs.SurfacePoints.from_vertex_ids(used), root_offset)
     verts = sub.vertices / unit
     corners = torch.gather(verts, 1, inverse.reshape(frames, -1, 1).expand(-1, -1, 3)).reshape(frames, -1, 3, 3)
     q = (bary[..., None] * corners).sum(-2)

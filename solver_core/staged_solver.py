@@ -24,6 +24,7 @@ import torch
 from uuomocap.solver_core.body_params import (
     BodyParams,
     FreeParameters,
+    apply_root_offset,
     MarkerAttachment,
     angle_difference,
     interpolate_params,
@@ -44,6 +45,7 @@ from uuomocap.solver_core.part_matching import PartMatch, PartMatchingConfig, fu
 from uuomocap.solver_core.parts import vertex_dominant_joint
 from uuomocap.solver_core.pose_fitting import PoseFittingConfig, fit_pose
 from uuomocap.solver_core.prior_preparation import BodyPrior
+from uuomocap.solver_core.rotations import matrix_to_axis_angle
 from uuomocap.solver_core.segmentation import SegmentationConfig, segment_markers
 
 STAGES = ("segmentation", "matching", "stage1", "stage2", "stage3", "stage4", "stage5")
@@ -224,7 +226,8 @@ def solve(
     part_output_ids = None if match.full_body else part_vertex_ids(model, match.joints)
     betas0 = torch.as_tensor(match.betas, dtype=torch.float32)
     matched = BodyParams(
-        prior_root.clone(), prior_body.clone(), torch.as_tensor(match.trans, dtype=torch.float32), betas0, torch.tensor(match.yaw)
+        apply_root_offset(prior_root, torch.as_tensor(match.tilt, dtype=torch.float32)), prior_body.clone(),
+        torch.as_tensor(match.trans, dtype=torch.float32), betas0, torch.tensor(match.yaw),
     )
     stage_results["matching"] = matched
     if config.stop_after == "matching":
@@ -236,26 +239,28 @@ def solve(
     screen_t = torch.as_tensor(screen)
     results = []
     with timed("stage1", f"{len(hypotheses)} yaw hypotheses"):
-        for hyp_yaw in hypotheses:
+        for hyp_yaw, hyp_tilt in hypotheses:
             yaw_t = torch.tensor(hyp_yaw)
+            root_h = apply_root_offset(prior_root[screen_t], torch.as_tensor(hyp_tilt, dtype=torch.float32))
             trans = full_translation(
-                chamfer_model, mk[screen_t], vis[screen_t], prior_root[screen_t], prior_body[screen_t], betas0, up,
-                match.vertex_ids, yaw_t,
+                chamfer_model, mk[screen_t], vis[screen_t], root_h, prior_body[screen_t], betas0, up, match.vertex_ids, yaw_t,
             )
-            init = BodyParams(prior_root[screen_t].clone(), prior_body[screen_t].clone(), trans, betas0.clone(), yaw_t)
-            p2, _ = fit_pose(
-                chamfer_model, mk[screen_t], vis[screen_t], prior_root[screen_t], prior_body[screen_t], beta_prior, init, up,
+            init = BodyParams(root_h.clone(), prior_body[screen_t].clone(), trans, betas0.clone(), yaw_t)
+            p2, _, tilt = fit_pose(
+                chamfer_model, mk[screen_t], vis[screen_t], root_h, prior_body[screen_t], beta_prior, init, up,
                 part_chamfer_ids, config.pose_fitting, rate_hz=rate_hz, on_step=stepper("stage1"),
             )
+            tilt = tilt @ torch.as_tensor(hyp_tilt, dtype=torch.float32)  # total tilt of this hypothesis
+            tilted_root = apply_root_offset(prior_root[screen_t], tilt)
             att = find_marker_surface_points(
                 model, mk[screen_t], vis[screen_t], p2, up, part_output_ids, config.correspondence, vertex_faces
             )
             p4, _ = solve_inverse_kinematics(
-                model, mk[screen_t], vis[screen_t], att, prior_root[screen_t], prior_body[screen_t], beta_prior, p2, up,
+                model, mk[screen_t], vis[screen_t], att, tilted_root, prior_body[screen_t], beta_prior, p2, up,
                 config.ik, FreeParameters(yaw=False), rate_hz=rate_hz, on_step=stepper("stage1"),
             )
             err = marker_fit_error(model, mk[screen_t], vis[screen_t], p4, att, up, config.ik.marker_offset_m)
-            results.append({"yaw": hyp_yaw, "fit_m": err, "stage2": p2, "stage2_yaw": float(p2.yaw)})
+            results.append({"yaw": hyp_yaw, "fit_m": err, "stage2": p2, "stage2_yaw": float(p2.yaw), "tilt": tilt})
     best = min(results, key=lambda r: r["fit_m"])
     diag["hypotheses"] = [
         {"start_yaw_deg": math.degrees(r["yaw"]), "stage2_yaw_deg": math.degrees(r["stage2_yaw"]) % 360.0, "marker_fit_mm": 1000 * r["fit_m"]}
@@ -264,15 +269,19 @@ def solve(
     diag["chosen_yaw_deg"] = math.degrees(best["stage2_yaw"]) % 360.0
 
     # ---- Stage 2 for the winner on more frames, warm-started from its screening result
+    # (the tilt found while screening is kept in the prior's roots; Stage 2 may refine it)
+    prior_root = apply_root_offset(prior_root, best["tilt"])
     chamfer_frames = _evenly_spaced(data_frames, config.chamfer_frames)
     cf_t = torch.as_tensor(chamfer_frames)
     with timed("stage2"):
         init = interpolate_params(best["stage2"], screen, chamfer_frames)
-        p2, rep = fit_pose(
+        p2, rep, tilt = fit_pose(
             chamfer_model, mk[cf_t], vis[cf_t], prior_root[cf_t], prior_body[cf_t], beta_prior, init, up,
             part_chamfer_ids, config.pose_fitting, rate_hz=rate_hz, on_step=stepper("stage2"),
         )
     losses["stage2"] = rep.final_loss
+    prior_root = apply_root_offset(prior_root, tilt)
+    diag["camera_tilt_deg"] = math.degrees(float(matrix_to_axis_angle(tilt @ best["tilt"]).norm()))
     stage2_all = interpolate_params(p2, chamfer_frames, all_frames)
     stage_results["stage2"] = stage2_all
     if config.stop_after == "stage2":
@@ -296,7 +305,9 @@ def solve(
     current, current_att = p4, att
     with timed("stage5", f"{config.refinement_rounds} round(s)"):
         for _ in range(config.refinement_rounds):
-            current_att = find_marker_surface_points(model, mk, vis, current, up, part_output_ids, config.correspondence, vertex_faces)
+            current_att = find_marker_surface_points(
+                model, mk, vis, current, up, part_output_ids, config.correspondence, vertex_faces, previous=current_att
+            )
             current, rep = solve_inverse_kinematics(
                 model, mk, vis, current_att, current.root_orient, current.body_pose, beta_prior, current, up, config.ik,
                 FreeParameters(yaw=False), rate_hz=rate_hz, on_step=stepper("stage5"),
@@ -307,13 +318,13 @@ def solve(
     return _finish(model, current, current_att, diag, seconds, losses, stage_results, up)
 
 
-def _distinct_hypotheses(match: PartMatch, merge_deg: float) -> list[float]:
-    """The registered yaw of each start, best first, dropping near-duplicates."""
+def _distinct_hypotheses(match: PartMatch, merge_deg: float) -> list[tuple[float, np.ndarray]]:
+    """(yaw, tilt) registered from each start, best first, dropping near-duplicate yaws."""
     ordered = sorted(match.yaw_starts, key=lambda s: s.error)
-    kept: list[float] = []
+    kept: list[tuple[float, np.ndarray]] = []
     for s in ordered:
-        if all(angle_difference(s.yaw, k) > math.radians(merge_deg) for k in kept):
-            kept.append(s.yaw)
+        if all(angle_difference(s.yaw, k) > math.radians(merge_deg) for k, _ in kept):
+            kept.append((s.yaw, s.tilt))
     return kept
 
 

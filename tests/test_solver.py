@@ -1,0 +1,232 @@
+"""Offline staged solver: segmentation, matching candidates, prior preparation, chamfer, and small
+end-to-end solves on generated sessions (yaw hypothesis, accuracy vs. baselines, partial body)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from uuomocap.solver_core.chamfer import nearest_indices, unidirectional_chamfer
+from uuomocap.solver_core.prior_preparation import (
+    BodyPrior,
+    camera_to_world_rotation,
+    fill_missing_prior_frames,
+    prior_to_world,
+    resample_prior,
+)
+from uuomocap.solver_core.segmentation import pairwise_distance_std, segment_markers
+
+
+def _rot_z(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _rigid_clusters(frames: int = 120, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Three rigid bodies of 4 markers each, moving independently -> (T, 12, 3), labels (12,)."""
+    rng = np.random.default_rng(seed)
+    local = rng.normal(0.0, 0.08, (12, 3))
+    out = np.zeros((frames, 12, 3))
+    for t in range(frames):
+        for k in range(3):
+            rot = _rot_z(0.05 * t * (k + 1)) @ _rot_z(0.3 * k).T
+            out[t, 4 * k : 4 * k + 4] = local[4 * k : 4 * k + 4] @ rot.T + np.array([0.5 * k, 0.01 * t, 0.02 * k * math.sin(0.1 * t)])
+    out += rng.normal(0.0, 0.0003, out.shape)
+    return out, np.repeat(np.arange(3), 4)
+
+
+def _same_partition(a: np.ndarray, b: np.ndarray) -> bool:
+    return all((a[i] == a[j]) == (b[i] == b[j]) for i in range(len(a)) for j in range(len(a)))
+
+
+def test_segmentation_groups_rigid_clusters_despite_occlusion_gaps():
+    markers, truth = _rigid_clusters()
+    assert _same_partition(segment_markers(markers), truth)
+    gappy = markers.copy()
+    gappy[10:70, 1] = np.nan  # long gap
+    gappy[::3, 6] = np.nan  # flicker
+    gappy[40:119, 11] = np.nan
+    labels = segment_markers(gappy)
+    assert _same_partition(labels, truth)
+    std, covisible = pairwise_distance_std(gappy)
+    assert covisible[1, 0] == 120 - 60
+    assert std[0, 1] < 0.005 < std[0, 4]
+
+
+def test_segmentation_rejects_bad_shape():
+    with pytest.raises(ValueError, match="markers must be"):
+        segment_markers(np.zeros((10, 3)))
+
+
+def test_chunked_chamfer_matches_brute_force():
+    gen = torch.Generator().manual_seed(0)
+    points = torch.randn(5, 7, 3, generator=gen)
+    targets = torch.randn(5, 300, 3, generator=gen, requires_grad=True)
+    visible = torch.rand(5, 7, generator=gen) > 0.2
+    idx = nearest_indices(points, targets, max_elements=500)  # forces many chunks
+    brute = ((points[:, :, None] - targets[:, None].detach()) ** 2).sum(-1)
+    assert torch.equal(idx, brute.argmin(-1))
+    value = unidirectional_chamfer(points, targets, visible, max_elements=500)
+    expected = (brute.min(-1).values * visible).sum() / visible.sum()
+    assert torch.allclose(value, expected, atol=1e-6)
+    value.backward()
+    assert targets.grad is not None and targets.grad.abs().sum() > 0
+
+
+def test_prior_fill_world_axes_and_resampling():
+    frames = 10
+    root = np.zeros((frames, 3))
+    root[:, 0] = np.linspace(0.0, 0.9, frames)  # rotation about camera x
+    body = np.zeros((frames, 23, 3))
+    body[:, 0, 2] = np.linspace(0.0, 0.9, frames)
+    valid = np.ones(frames, bool)
+    valid[[0, 4, 5, 9]] = False
+    prior = BodyPrior(root, body, np.tile(np.arange(3.0), (frames, 1)), valid, np.ones(frames),
+                      (np.arange(frames) * 1e8).astype(np.int64), "camera")
+    filled = fill_missing_prior_frames(prior)
+    assert np.allclose(filled.root_orient[0], root[1])  # nearest at the start
+    assert np.allclose(filled.root_orient[9], root[8])  # nearest at the end
+    assert np.allclose(filled.root_orient[4:6], root[4:6], atol=1e-6)  # slerp inside (same axis -> linear)
+    assert np.allclose(filled.body_pose[4:6], body[4:6], atol=1e-6)
+    # camera y (down) -> world -z for a Z-up world; camera axes stay right-handed
+    r = camera_to_world_rotation("+z")
+    assert np.allclose(r @ np.array([0.0, 1.0, 0.0]), [0.0, 0.0, -1.0])
+    assert np.isclose(np.linalg.det(r), 1.0)
+    world = prior_to_world(filled, "+z")
+    assert world.frame == "world"
+    # resample at twice the rate with a clock offset of +0.1 s (one source frame)
+    target = (np.arange(2 * frames) * 5e7).astype(np.int64)
+    res = resample_prior(filled, target, clock_offset_s=0.1)
+    assert res.num_frames == 2 * frames
+    assert np.allclose(res.body_pose[4], filled.body_pose[1], atol=1e-6)  # 0.2 s <- video 0.1 s
+    assert np.allclose(res.body_pose[5], 0.5 * (filled.body_pose[1] + filled.body_pose[2]), atol=1e-6)
+
+
+def test_part_candidates_are_connected_k_subtrees_and_pruned():
+    from uuomocap.solver_core.body_model import SMPL_PARENTS
+    from uuomocap.solver_core.part_matching import candidate_part_joints
+    from uuomocap.solver_core.parts import PART_JOINTS, connected_subtrees
+
+    parents = list(SMPL_PARENTS)
+    four = candidate_part_joints(torch.tensor(parents), 4, overlap=0.9, max_candidates=1000)
+    assert tuple(PART_JOINTS["left_leg"]) in four
+    assert len(four) == len(connected_subtrees(parents, 4))  # nothing shares >= 90 % of 4 joints
+    for cand in four:  # connected: every joint but one has its parent inside
+        assert sum(parents[j] not in cand for j in cand) == 1
+    pruned = candidate_part_joints(torch.tensor(parents), 12, overlap=0.9, max_candidates=1000)
+    kept = [set(c) for c in pruned]
+    assert len(pruned) < len(connected_subtrees(parents, 12))
+    assert all(len(a & b) < 0.9 * 12 for i, a in enumerate(kept) for b in kept[i + 1 :])
+
+
+# ----------------------------------------------------------------------------- end to end
+
+
+def _make_session(tmp_path: Path, name: str, **cfg) -> Path:
+    synth = pytest.importorskip("uuomocap.synth")
+    out = tmp_path / name
+    synth.make_session(out, synth.SampleConfig(video=False, **cfg))
+    return out
+
+
+def _fast_config(**over):
+    from uuomocap.solver_core.inverse_kinematics import InverseKinematicsConfig
+    from uuomocap.solver_core.optimization import LBFGSConfig
+    from uuomocap.solver_core.pose_fitting import PoseFittingConfig
+    from uuomocap.solver_core.staged_solver import SolverConfig
+
+    return SolverConfig(
+        pose_fitting=PoseFittingConfig(lbfgs=LBFGSConfig(lr=0.1, max_iterations=60, rel_tol=1e-3)),
+        ik=InverseKinematicsConfig(lbfgs=LBFGSConfig(lr=1.0, max_iterations=60, rel_tol=1e-3)),
+        screening_frames=30,
+        chamfer_frames=45,
+        **over,
+    )
+
+
+def _mpjpe(joints: np.ndarray, gt: dict) -> float:
+    from uuomocap.solver_core.metrics import mpjpe
+
+    return mpjpe(joints, np.asarray(gt["joints"]))
+
+
+@pytest.fixture(scope="module")
+def full_session(tmp_path_factory) -> Path:
+    return _make_session(tmp_path_factory.mktemp("solver"), "walk", motion="walk", duration_s=3.0, rate_hz=30.0,
+                         n_markers=30, seed=3, yaw_offset_deg=180.0)
+
+
+def test_full_body_solve_picks_yaw_and_beats_the_prior(full_session):
+    torch.set_num_threads(1)
+    from uuomocap.solver_core.baselines import labeled_inverse_kinematics, video_rigid_registration
+    from uuomocap.solver_core.body_params import MarkerAttachment, pose_params, up_tensor
+    from uuomocap.solver_core.staged_solver import solve
+    from uuomocap.solver_methods import inputs_from_session, load_models
+
+    inp = inputs_from_session(full_session, load_gt=True)
+    model, chamfer_model = load_models(inp.body_model)
+    res = solve(inp.markers, inp.visible, inp.rate_hz, inp.up_axis, inp.prior, inp.shape_prior, model, chamfer_model,
+                _fast_config())
+    d = res.diagnostics
+    assert d["full_body"] is True
+    # the prior's heading is 180 deg off the world; the solver's yaw undoes it
+    assert abs(((d["chosen_yaw_deg"] - 180.0) + 180.0) % 360.0 - 180.0) < 20.0
+    assert set(d["stage_seconds"]) >= {"segmentation", "matching", "stage1", "stage2", "stage3", "stage4", "stage5"}
+    ours = _mpjpe(res.joints, inp.gt)
+
+    up = up_tensor(inp.up_axis)
+    rr = video_rigid_registration(inp.markers, inp.visible, inp.up_axis, inp.prior, inp.shape_prior, chamfer_model)
+    with torch.no_grad():
+        rr_joints = pose_params(model, rr.params, up).joints.double().numpy()
+    att = MarkerAttachment(torch.as_tensor(inp.gt["marker_faces"]), torch.as_tensor(inp.gt["marker_bary"]).float(),
+                           torch.zeros(inp.markers.shape[1]))
+    oracle = labeled_inverse_kinematics(inp.markers, inp.visible, inp.up_axis, inp.prior, inp.shape_prior, att, model,
+                                        config=_fast_config().ik, rate_hz=inp.rate_hz)
+    with torch.no_grad():
+        oracle_joints = pose_params(model, oracle.params, up).joints.double().numpy()
+    prior_err, oracle_err = _mpjpe(rr_joints, inp.gt), _mpjpe(oracle_joints, inp.gt)
+    assert ours < 0.5 * prior_err, (ours, prior_err)
+    assert ours < max(2.0 * oracle_err, oracle_err + 15.0), (ours, oracle_err)
+    # every marker is labelled with a body part, face and barycentric coordinates
+    assert all(res.marker_parts)
+    assert (res.attachment.face_ids >= 0).all()
+    assert torch.allclose(res.attachment.bary.sum(1), torch.ones(inp.markers.shape[1]), atol=1e-4)
+
+
+def test_partial_body_left_leg_is_found(tmp_path):
+    torch.set_num_threads(1)
+    from uuomocap.solver_core.parts import PART_JOINTS
+    from uuomocap.solver_core.staged_solver import solve
+    from uuomocap.solver_methods import inputs_from_session, load_models
+
+    session = _make_session(tmp_path, "leg", motion="walk", duration_s=3.0, rate_hz=30.0, n_markers=12, part="left_leg",
+                            seed=1)
+    inp = inputs_from_session(session, load_gt=True)
+    model, chamfer_model = load_models(inp.body_model)
+    res = solve(inp.markers, inp.visible, inp.rate_hz, inp.up_axis, inp.prior, inp.shape_prior, model, chamfer_model,
+                _fast_config(stop_after="stage4"))
+    d = res.diagnostics
+    assert d["full_body"] is False
+    leg = {model.joint_names[j] for j in PART_JOINTS["left_leg"]}
+    assert leg & set(d["part_joints"]), d["part_joints"]
+    labelled = [p for p in res.marker_parts if p]
+    assert sum(p in leg | {"pelvis"} for p in labelled) >= 0.75 * len(labelled), res.marker_parts
+
+
+def test_solve_cli_writes_out_npz(full_session, tmp_path):
+    from uuomocap.cli import main
+    from uuomocap.protocol.session import read_npz
+
+    out = tmp_path / "rr.npz"
+    assert main(["solve", str(full_session), "--method", "video-rr", "--out", str(out), "--quiet"]) == 0
+    arrays = read_npz(out)
+    frames = np.asarray(arrays["poses"]).shape[0]
+    assert np.asarray(arrays["joints"]).shape == (frames, 24, 3)
+    for key in ("betas", "trans", "mocap_framerate", "stamps_ns", "marker_parts", "marker_faces", "marker_bary", "method"):
+        assert key in arrays
+    assert main(["solve", "--markers", str(full_session / "markers.c3d"), "--out", str(out), "--quiet"]) == 2  # no prior
