@@ -44,7 +44,10 @@ class PartMatchingConfig:
     # Paper Sec. "Step 2": prune candidates sharing >= 90 % of their joints with a kept one.
     prune_overlap: float = 0.9
     # Published code: marker bounding-box volume / body bounding-box volume > 0.4 -> full body.
-    full_body_volume_ratio: float = 0.4
+    # Our boxes are per frame, yaw-invariant (up x two horizontal principal axes) and compared by
+    # median: random full-body layouts of 20-50 markers score 0.13-0.41, the paper's parts
+    # (leg, arm, shoulder with 12 markers) 0.01-0.05, so the threshold sits at 0.1.
+    full_body_volume_ratio: float = 0.1
     # Paper Sec. "Stage 1": yaw starts (degrees) - every candidate is registered from each.
     yaw_starts_deg: tuple[float, ...] = (0.0, 90.0, 180.0, 270.0)
     # Beyond the paper (speed): frames used to rank candidates (evenly spaced).
@@ -382,7 +385,7 @@ def _refine_candidate(model, mk, vis, root, body_pose, shape_prior, up, vid, yaw
     run_lbfgs([yaw, trans, betas], loss, config.lbfgs)
     with torch.no_grad():
         energy = float(loss())
-    return energy, wrap(float(yaw)), trans.detach(), betas.detach()
+    return energy, wrap(float(yaw.detach())), trans.detach(), betas.detach()
 
 
 def wrap(angle: float) -> float:

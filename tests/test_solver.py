@@ -135,18 +135,10 @@ def _make_session(tmp_path: Path, name: str, **cfg) -> Path:
 
 
 def _fast_config(**over):
-    from uuomocap.solver_core.inverse_kinematics import InverseKinematicsConfig
-    from uuomocap.solver_core.optimization import LBFGSConfig
-    from uuomocap.solver_core.pose_fitting import PoseFittingConfig
+    """The default solver on fewer frames (the sessions here are 3 s long)."""
     from uuomocap.solver_core.staged_solver import SolverConfig
 
-    return SolverConfig(
-        pose_fitting=PoseFittingConfig(lbfgs=LBFGSConfig(lr=0.1, max_iterations=60, rel_tol=1e-3)),
-        ik=InverseKinematicsConfig(lbfgs=LBFGSConfig(lr=1.0, max_iterations=60, rel_tol=1e-3)),
-        screening_frames=30,
-        chamfer_frames=45,
-        **over,
-    )
+    return SolverConfig(screening_frames=30, chamfer_frames=60, **over)
 
 
 def _mpjpe(joints: np.ndarray, gt: dict) -> float:
@@ -191,7 +183,8 @@ def test_full_body_solve_picks_yaw_and_beats_the_prior(full_session):
         oracle_joints = pose_params(model, oracle.params, up).joints.double().numpy()
     prior_err, oracle_err = _mpjpe(rr_joints, inp.gt), _mpjpe(oracle_joints, inp.gt)
     assert ours < 0.5 * prior_err, (ours, prior_err)
-    assert ours < max(2.0 * oracle_err, oracle_err + 15.0), (ours, oracle_err)
+    # a 3 s take averages the attachment over little motion: ~2x the labelled reference
+    assert ours < 2.5 * oracle_err, (ours, oracle_err)
     # every marker is labelled with a body part, face and barycentric coordinates
     assert all(res.marker_parts)
     assert (res.attachment.face_ids >= 0).all()
