@@ -281,7 +281,11 @@ def solve(
         )
     losses["stage2"] = rep.final_loss
     prior_root = apply_root_offset(prior_root, tilt)
-    diag["camera_tilt_deg"] = math.degrees(float(matrix_to_axis_angle(tilt @ best["tilt"]).norm()))
+    camera_tilt = tilt @ best["tilt"]
+    diag["camera_tilt_deg"] = math.degrees(float(matrix_to_axis_angle(camera_tilt).norm()))
+    # (3,3) rotation premultiplying every prior root (before the yaw): consumers that keep using
+    # the video prior after this solve (the windowed solver) must tilt their priors the same way
+    diag["camera_tilt"] = camera_tilt.tolist()
     stage2_all = interpolate_params(p2, chamfer_frames, all_frames)
     stage_results["stage2"] = stage2_all
     if config.stop_after == "stage2":

@@ -356,6 +356,7 @@ class WindowedSolver:
         self.locked = False
         self.betas = None
         self.yaw = 0.0
+        self.camera_tilt = np.eye(3)
         self.face_ids = None
         self.bary = None
         self.allowed_ids = None
@@ -517,6 +518,9 @@ class WindowedSolver:
         old_yaw = self.yaw
         self.betas = res.params.betas.detach().clone()
         self.yaw = float(res.params.yaw)
+        # the bootstrap estimated the video camera's tilt; every later prior root gets the same tilt
+        # (the bootstrap window's own priors below are tilted here too)
+        self.camera_tilt = np.asarray(res.diagnostics.get("camera_tilt", np.eye(3)), dtype=np.float64)
         self.face_ids = res.attachment.face_ids.numpy().astype(np.int64).copy()
         self.bary = res.attachment.bary.double().numpy().copy()
         diag = res.diagnostics
@@ -560,7 +564,7 @@ class WindowedSolver:
         full = interpolate_params(res.params, sel, np.arange(len(frames)))
         theta = np.concatenate([full.root_orient.double().numpy(), full.body_pose.double().numpy().reshape(len(frames), -1)], 1)
         trans = full.trans.double().numpy()
-        prior72 = np.concatenate([prior.root_orient, prior.body_pose.reshape(len(frames), -1)], 1)
+        prior72 = self._tilt_priors(np.concatenate([prior.root_orient, prior.body_pose.reshape(len(frames), -1)], 1))
         for i, f in enumerate(frames):
             f.prior = prior72[i] if has_prior else theta[i].copy()
         theta, trans = self._gauss_newton(theta, trans, markers, vis, prior72 if has_prior else theta.copy(), c.estimate_iterations)
@@ -704,8 +708,16 @@ class WindowedSolver:
         """(72,) world prior (before the yaw) of the latest valid prior at or before ``stamp``."""
         for st, valid, prior in reversed(self._prior72):
             if st <= stamp and valid:
-                return prior
+                return self._tilt_priors(prior[None])[0]
         return None
+
+    def _tilt_priors(self, prior72: np.ndarray) -> np.ndarray:
+        """(B,72) priors with the camera tilt found at bootstrap applied to their roots."""
+        out = np.array(prior72, dtype=np.float64)
+        if not np.allclose(self.camera_tilt, np.eye(3)):
+            for i in range(len(out)):
+                out[i, :3] = rotation_vector(self.camera_tilt @ rotation_matrices(out[i, :3]))
+        return out
 
     def _estimate(self, frame: _Frame) -> WindowResult:
         c = self.config

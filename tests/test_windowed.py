@@ -122,6 +122,9 @@ def test_refined_accuracy_close_to_offline(streamed, session):
 
 def test_occlusion_gap_keeps_correspondence(streamed):
     s = _clone(streamed)
+    # no periodic re-check here: it may legitimately move any marker to a better-fitting point,
+    # and this test is about what the occlusion gap itself does to the correspondence
+    s.config = replace(s.config, recheck_period_s=0.0)
     md, rows = streamed["md"], streamed["rows"]
     n = md.positions.shape[0]
     order = np.concatenate([np.arange(n - 1, 0, -1), np.arange(n)])  # continue backwards: continuous motion
@@ -213,4 +216,7 @@ def test_degraded_fit_rebootstraps_while_estimating(streamed):
         residuals.append(out[0].residual_m)
     assert s.stats["rebootstraps"] == 1, s.stats
     assert np.mean(residuals[:10]) > s.config.degrade_threshold_m
+    # fits again: as well as the first lock did on the same frames (before the permutation)
+    baseline = np.mean([r.residual_m for r in streamed["results"] if r.kind == "estimate"])
+    print(f"\nresidual after re-bootstrap {np.mean(residuals[-10:]) * 1e3:.1f} mm, first lock {baseline * 1e3:.1f} mm")
     assert np.mean(residuals[-10:]) < 0.015, residuals[-10:]
