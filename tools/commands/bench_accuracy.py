@@ -32,6 +32,7 @@ PART_MARKERS = 12
 MARKER_COUNTS = (20, 30, 40, 50)
 OCCLUSIONS = (0.0, 0.002, 0.01)
 # Columns per table: (metric key, header).  Partial tables show the part's joints.
+SMOKE_METHODS = ("gt", "video-rr", "oracle-labeled", "uuo", "uuo-window")
 FULL_COLUMNS = (("m2s", "m2s"), ("mpjpe", "MPJPE"), ("mpjve", "MPJVE"), ("v2v", "V2V"))
 PART_COLUMNS = (("m2s", "m2s"), ("part_mpjpe", "MPJPE"), ("part_mpjve", "MPJVE"), ("part_found", "found%"))
 
@@ -169,6 +170,10 @@ def run_bench(args) -> dict:
         unknown = [m for m in methods if m not in METHODS]
         if unknown:
             raise UserError(f"unknown method(s) {', '.join(unknown)}; registered: {', '.join(sorted(METHODS)) or 'none'}")
+    elif args.suite == "smoke":
+        # the smoke suite is a sanity check (< 2 min): the reference, the baselines and our solvers;
+        # ablations and slow variants run in `full` or with --methods
+        methods = [m for m in SMOKE_METHODS if m in METHODS]
     else:
         methods = sorted(METHODS)
     if not methods:
@@ -276,7 +281,7 @@ def register_bench(subparsers) -> None:
             "markers x seeds x motions; left leg / right arm / left shoulder; occlusion 0/0.2/1 %)."),
     )
     p.add_argument("--suite", choices=("smoke", "full"), default="smoke")
-    p.add_argument("--methods", action="append", metavar="M[,M...]", help="methods to run (default: all registered)")
+    p.add_argument("--methods", action="append", metavar="M[,M...]", help="methods to run (default: smoke - " + ",".join(SMOKE_METHODS) + "; full - all registered)")
     p.add_argument("--seeds", type=int, default=None, help="seeds per scenario in the full suite (default 10)")
     p.add_argument("--motions", action="append", metavar="M[,M...]",
                    help=f"motions of the full suite (default {','.join(FULL_MOTIONS)})")
