@@ -243,6 +243,17 @@ class Node:
             self._wait_ready(topic)
         return self._pub.send(topic, msg, stamp_ns)
 
+    def wait_ready(self, *ports: str) -> None:
+        """Run the slow-joiner handshake now for these output ports (default: all of them).
+
+        Paced sources call this before their clock starts: otherwise the first publish() waits
+        for the subscribers after the clock's origin was taken, and the frames that fell due
+        meanwhile go out in a burst."""
+        for port in ports or tuple(self.outputs):
+            topic = self.outputs[port]
+            if topic not in self._ready_done:
+                self._wait_ready(topic)
+
     def end_stream(self, port: str) -> None:
         topic = self.outputs[port]
         seq, stamp = self._pub.last_sent.get(topic, (-1, 0))

@@ -102,8 +102,10 @@ class MarkerReplay(Node):
         seq = self.last_seq + 1
         if c.lockstep:
             self.wait_for_credit("markers", seq, msg.stamp_ns, c.ack_from, c.window, c.ack_timeout_s)
-        elif not self.sleep_until(self.pacer.due_ns(msg.stamp_ns)):
-            return False
+        else:
+            self.wait_ready("markers")  # the clock starts once the subscribers are ready: no start-up burst
+            if not self.sleep_until(self.pacer.due_ns(msg.stamp_ns)):
+                return False
         if self.stopping:
             return False
         self.last_seq = self.publish("markers", msg)

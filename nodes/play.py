@@ -90,8 +90,10 @@ class Play(Node):
         if c.lockstep:
             seq = self._pub.next_seq(env.topic)
             self.wait_for_credit(env.topic, seq, env.stamp_ns, c.ack_from, c.window, c.ack_timeout_s)
-        elif not self.sleep_until(self.pacer.due_ns(rec.publish_time_ns - self.first + self.cycle)):
-            return False
+        else:
+            self.wait_ready()  # every output's subscribers before the clock starts (no start-up burst)
+            if not self.sleep_until(self.pacer.due_ns(rec.publish_time_ns - self.first + self.cycle)):
+                return False
         self.publish(env.topic, env.message, env.stamp_ns)
         self.count("played")
         return True

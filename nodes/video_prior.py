@@ -97,8 +97,10 @@ class VideoPrior(Node):
             self.log.info("video prior finished: %d frames", self.count_frames)
             return False
         self.count_frames += 1
-        if self.pacer is not None and not self.sleep_until(self.pacer.due_ns(frame.stamp_ns)):
-            return False
+        if self.pacer is not None:
+            self.wait_ready()  # the clock starts once the subscribers are ready (no start-up burst)
+            if not self.sleep_until(self.pacer.due_ns(frame.stamp_ns)):
+                return False
         result = self.estimator.process(frame.rgb())
         self.count("frames")
         self.count("person" if result is not None else "no_person")

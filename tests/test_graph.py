@@ -327,6 +327,43 @@ def test_publisher_waits_for_a_late_subscriber_and_loses_nothing(tmp_path):
     assert replay.counters.get("ready_timeouts", 0) == 0
 
 
+def test_real_time_replay_starts_its_clock_after_a_late_subscriber(tmp_path):
+    """No start-up burst: the frames are paced at the capture rate from the first one published
+    (asserted on publish stamps against capture stamps: the pacer never publishes early)."""
+    cap = tmp_path / "m.c3d"
+    write_capture(cap, 90)  # 0.75 s at 120 Hz
+    ep = Endpoints.ipc(tmp_path)
+    broker = BrokerThread(ep)
+    replay = MarkerReplay("replay", MarkerReplay.parse_config({"file": str(cap)}, "replay"),
+                          Runtime(ep, expect={"markers/raw": ["late"]}, ready_timeout_s=60))
+    rec = Recorder("late", Recorder.parse_config({"out": str(tmp_path / "late.mcap"), "topics": ["markers/raw"]}, "late"),
+                   Runtime(ep))
+    codes = {}
+    t_replay = threading.Thread(target=lambda: codes.setdefault("replay", replay.run()))
+    t_rec = threading.Thread(target=lambda: codes.setdefault("rec", rec.run()))
+    try:
+        t_replay.start()
+        time.sleep(1.5)  # the subscriber joins after the whole capture's duration (setup, not an assertion)
+        t_rec.start()
+        t_replay.join(DEADLINE)
+        rec.request_stop()
+        t_rec.join(DEADLINE)
+    finally:
+        replay.request_stop()
+        rec.request_stop()
+        broker.stop()
+    assert codes == {"replay": 0, "rec": 0}
+    frames = [e for e in recorded(tmp_path / "late.mcap", "markers/raw") if e.type == "MarkerFrame"]
+    assert [e.seq for e in frames] == list(range(90))
+    pub = np.array([e.publish_ns for e in frames], dtype=np.int64)
+    cap_ns = np.array([e.stamp_ns for e in frames], dtype=np.int64)
+    period = int(np.median(np.diff(cap_ns)))
+    # frame k goes out no earlier than its capture offset after frame 0 (tolerance: 3 periods for
+    # frame 0 leaving late); a burst would put all 90 frames within a few ms of each other
+    assert ((pub - pub[0]) >= (cap_ns - cap_ns[0]) - 3 * period).all()
+    assert np.median(np.diff(pub)) > 0.5 * period
+
+
 # ------------------------------------------------------------------------------------------
 # Launched graphs (separate processes)
 # ------------------------------------------------------------------------------------------
