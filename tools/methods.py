@@ -88,3 +88,4 @@ register_method("gt", ground_truth_copy, "ground truth copied into OUT.npz (sani
 # Solver modules register their methods below, one import line each.
 import uuomocap.window_methods  # noqa: E402,F401  (uuo-window: near-online sliding-window solver)
 import uuomocap.solver_methods  # noqa: E402,F401  (uuo, baselines and stage ablations of the offline solver)
+import uuomocap.video_methods  # noqa: E402,F401  (blazepose-prior, uuo+blazepose: the BlazePose estimator on the session video)

@@ -34,6 +34,7 @@ OCCLUSIONS = (0.0, 0.002, 0.01)
 # Columns per table: (metric key, header).  Partial tables show the part's joints.
 SMOKE_METHODS = ("gt", "video-rr", "oracle-labeled", "uuo", "uuo-window")
 FULL_COLUMNS = (("m2s", "m2s"), ("mpjpe", "MPJPE"), ("mpjve", "MPJVE"), ("v2v", "V2V"))
+PA_COLUMN = ("pa_mpjpe", "PA-MPJPE")  # --pa-mpjpe: per-frame similarity-aligned MPJPE (a video prior's own accuracy)
 PART_COLUMNS = (("m2s", "m2s"), ("part_mpjpe", "MPJPE"), ("part_mpjve", "MPJVE"), ("part_found", "found%"))
 
 
@@ -42,19 +43,37 @@ def default_cache() -> Path:
     return Path(base) / "uuomocap" / "bench"
 
 
-def suite_scenarios(suite: str, seeds: int | None, motions: tuple[str, ...] | None, video: bool):
-    """-> list of (table, scenario, [SampleConfig...])."""
+def suite_scenarios(suite: str, seeds: int | None, motions: tuple[str, ...] | None, video: bool,
+                    duration_s: float | None = None, only: tuple[str, ...] | None = None):
+    """-> list of (table, scenario, [SampleConfig...]).
+
+    duration_s: session length (default 8 s, smoke 2.5 s); only: keep these scenario names."""
+    scen = _suite_scenarios(suite, seeds, motions, video, duration_s)
+    if only:
+        names = [s for _, s, _ in scen]
+        unknown = [o for o in only if o not in names]
+        if unknown:
+            raise UserError(f"unknown scenario(s) {', '.join(map(repr, unknown))} in suite {suite}; "
+                            f"scenarios: {', '.join(map(repr, dict.fromkeys(names)))}")
+        scen = [x for x in scen if x[1] in only]
+    return scen
+
+
+def _suite_scenarios(suite: str, seeds: int | None, motions: tuple[str, ...] | None, video: bool,
+                     duration_s: float | None):
     from uuomocap.synth import SampleConfig
 
     base = SampleConfig(rate_hz=30.0, duration_s=8.0, video=video, video_size=(320, 240))
     if suite == "smoke":
-        base = replace(base, duration_s=2.5)
+        base = replace(base, duration_s=duration_s or 2.5)
         return [
             ("smoke", "walk 40", [replace(base, motion="walk", n_markers=40, seed=0)]),
             ("smoke", "jump 30 occl 1%", [replace(base, motion="jump", n_markers=30, occlusion=0.01, seed=1)]),
         ]
     if suite != "full":
         raise UserError(f"unknown suite {suite!r}; use smoke or full")
+    if duration_s:
+        base = replace(base, duration_s=float(duration_s))
     n_seeds = 10 if seeds is None else seeds
     mots = motions or FULL_MOTIONS
     grid = [(m, s) for m in mots for s in range(n_seeds)]
@@ -118,11 +137,15 @@ def summarise(runs: list[dict]) -> dict:
             agg["sessions"] = len(rs)
             agg["failed"] = len(rs) - len(ok)
             agg["seconds"] = _mean([r.get("seconds") for r in ok])
+            det = [r["info"]["estimator"]["detection_rate"] for r in ok
+                   if isinstance((r.get("info") or {}).get("estimator"), dict) and "detection_rate" in r["info"]["estimator"]]
+            if det:
+                agg["detection_rate"] = _mean(det)
             summary[method][name] = agg
     return summary
 
 
-def format_tables(summary: dict, layout: list[tuple[str, str]], methods: list[str]) -> str:
+def format_tables(summary: dict, layout: list[tuple[str, str]], methods: list[str], pa_mpjpe: bool = False) -> str:
     """Paper-style tables: one per table group, rows = methods, 4 columns per scenario."""
     lines = []
     tables: dict[str, list[str]] = {}
@@ -133,6 +156,8 @@ def format_tables(summary: dict, layout: list[tuple[str, str]], methods: list[st
     for table, scens in tables.items():
         partial = table == "partial body"
         cols = PART_COLUMNS if partial else FULL_COLUMNS
+        if pa_mpjpe and not partial:
+            cols = cols[:2] + (PA_COLUMN,) + cols[2:]
         width = 8 * len(cols) + 1
         head1 = f"{'':<16}" + "".join(f"|{s:^{width - 1}}" for s in scens) + "|"
         head2 = f"{'method':<16}" + "".join("|" + "".join(f"{h:>8}" for _, h in cols) for _ in scens) + "|"
@@ -155,6 +180,11 @@ def format_tables(summary: dict, layout: list[tuple[str, str]], methods: list[st
     for m, s, k, n in fails:
         lines.append(f"! {m} failed on {k}/{n} sessions of {s}")
     times = {m: _mean([a["seconds"] for a in ss.values()]) for m, ss in summary.items()}
+    det = {m: _mean([a["detection_rate"] for a in ss.values() if "detection_rate" in a]) for m, ss in summary.items()}
+    det = {m: v for m, v in det.items() if not math.isnan(v)}
+    if det:
+        lines.append("video estimator: person detected in " + ", ".join(f"{100 * v:.1f} % of frames ({m})"
+                                                                       for m, v in det.items()))
     lines.append("mean seconds per session: " + ", ".join(f"{m} {t:.1f}" for m, t in times.items()))
     return "\n".join(lines)
 
@@ -179,7 +209,8 @@ def run_bench(args) -> dict:
     if not methods:
         raise UserError("no methods are registered")
     motions = tuple(m for item in (args.motions or []) for m in item.split(",") if m) or None
-    scenarios = suite_scenarios(args.suite, args.seeds, motions, args.video)
+    only = tuple(s.strip() for item in (getattr(args, "scenarios", None) or []) for s in item.split(",") if s.strip())
+    scenarios = suite_scenarios(args.suite, args.seeds, motions, args.video, getattr(args, "duration", None), only or None)
     cache = Path(args.cache) if args.cache else default_cache()
     cache.mkdir(parents=True, exist_ok=True)
 
@@ -248,7 +279,7 @@ def run_bench(args) -> dict:
         "scenarios": [{"table": t, "scenario": s, "sessions": len(c)} for t, s, c in scenarios],
         "summary": summary,
         "runs": runs,
-        "table": format_tables(summary, layout, methods),
+        "table": format_tables(summary, layout, methods, pa_mpjpe=bool(getattr(args, "pa_mpjpe", False))),
     }
 
 
@@ -285,6 +316,12 @@ def register_bench(subparsers) -> None:
     p.add_argument("--seeds", type=int, default=None, help="seeds per scenario in the full suite (default 10)")
     p.add_argument("--motions", action="append", metavar="M[,M...]",
                    help=f"motions of the full suite (default {','.join(FULL_MOTIONS)})")
+    p.add_argument("--duration", type=float, default=None, metavar="S",
+                   help="session length in seconds (default: 8, smoke 2.5)")
+    p.add_argument("--scenarios", action="append", metavar="NAME[,NAME...]",
+                   help="run only these scenarios of the suite, e.g. '40 markers' or 'left_leg'")
+    p.add_argument("--pa-mpjpe", action="store_true",
+                   help="add a PA-MPJPE column (per-frame similarity-aligned) to the full-body tables")
     p.add_argument("--video", action="store_true", help="also render video.mp4 (for methods that run the video estimator)")
     p.add_argument("--cache", metavar="DIR", help=f"session cache (default {default_cache()})")
     p.add_argument("--json", metavar="FILE", help="write all results as JSON")
