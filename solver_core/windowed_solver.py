@@ -59,7 +59,6 @@ from uuomocap.solver_core.prior_preparation import (
     neutral_prior,
     prepare_prior,
 )
-from uuomocap.solver_core.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from uuomocap.solver_core.staged_solver import SolverConfig, marker_part_names, part_vertex_ids, solve
 
 N_POSE = 72  # root (before the yaw) + 23 body joints, axis-angle
@@ -216,8 +215,29 @@ def rotation_matrices(aa: np.ndarray) -> np.ndarray:
 
 
 def rotation_vector(rot: np.ndarray) -> np.ndarray:
-    """(3,3) rotation -> axis-angle (3,) (norm <= pi)."""
-    return matrix_to_axis_angle(torch.as_tensor(np.asarray(rot, dtype=np.float64))).numpy()
+    """(3,3) rotation -> axis-angle (3,) (norm <= pi), via the unit quaternion (Shepperd's branch
+    choice: stable near 0 and pi).  Scalar float64 math: the per-frame outputs convert one matrix
+    at a time, where torch's per-call overhead was ~0.6 ms."""
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = np.asarray(rot, dtype=np.float64).tolist()
+    tr = r00 + r11 + r22
+    k = max(range(4), key=(tr, r00, r11, r22).__getitem__)
+    if k == 0:
+        s = 2.0 * math.sqrt(max(1.0 + tr, 0.0))
+        w, x, y, z = 0.25 * s, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s
+    elif k == 1:
+        s = 2.0 * math.sqrt(max(1.0 + r00 - r11 - r22, 0.0))
+        w, x, y, z = (r21 - r12) / s, 0.25 * s, (r01 + r10) / s, (r02 + r20) / s
+    elif k == 2:
+        s = 2.0 * math.sqrt(max(1.0 + r11 - r00 - r22, 0.0))
+        w, x, y, z = (r02 - r20) / s, (r01 + r10) / s, 0.25 * s, (r12 + r21) / s
+    else:
+        s = 2.0 * math.sqrt(max(1.0 + r22 - r00 - r11, 0.0))
+        w, x, y, z = (r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s
+    if w < 0:
+        w, x, y, z = -w, -x, -y, -z
+    n = math.sqrt(x * x + y * y + z * z)
+    f = 2.0 * math.atan2(n, w) / n if n > 1e-12 else 2.0 / max(w, 1e-12)
+    return np.array([x * f, y * f, z * f])
 
 
 def wrap_rotation_vector(aa: np.ndarray) -> np.ndarray:
@@ -345,6 +365,8 @@ class WindowedSolver:
                 D[p, k] = 1.0
                 p = parents[p]
         self._desc = D
+        self._parents = np.asarray(parents)
+        self._levels = [(ids.numpy(), par.numpy()) for ids, par in lbs.kinematic_levels(model.parents)]
         self._one_point = lbs.SurfacePoints.from_vertex_ids(torch.zeros(1, dtype=torch.long))
         self.reset()
 
@@ -598,6 +620,9 @@ class WindowedSolver:
         with torch.no_grad():
             rest = lbs.forward(m, self.betas.reshape(1, -1), torch.zeros(1, 24, 3),
                                points=lbs.SurfacePoints.from_vertex_ids(corners)).vertices[0].double().numpy()
+            joints = lbs.forward(m, self.betas.reshape(1, -1), torch.zeros(1, 24, 3), points=self._one_point).joints[0]
+        self._rest_joints = joints.double().numpy()  # (24,3) at the locked shape
+        self._rel_joints = self._rest_joints - np.where(self._parents[:, None] >= 0, self._rest_joints[self._parents], 0.0)
         Ma = len(assigned)
         self._vc = rest.reshape(Ma, 3, 3)  # rest corner positions
         self._wc = m.weights[corners].double().numpy().reshape(Ma, 3, -1)  # corner skinning weights
@@ -621,11 +646,7 @@ class WindowedSolver:
         c = self.config.ik
         rot = rotation_matrices(theta.reshape(B, 24, 3))
         rot[:, 0] = self._yaw_matrix @ rot[:, 0]  # the world root is R_up(yaw) R(root_orient)
-        with torch.no_grad():
-            out = lbs.forward(self.model, self._betas_row, torch.as_tensor(rot, dtype=torch.float32), None, points=self._one_point)
-        A = out.skinning.double().numpy()  # (B,24,3,4)
-        grot = out.joint_rotations.double().numpy()  # (B,24,3,3)
-        pj = out.joints.double().numpy()  # (B,24,3) without trans
+        A, grot, pj = self._forward_kinematics(rot)
         a = self._assigned
         Ma = len(a)
         Tc = (self._wc.reshape(Ma * 3, -1) @ A.reshape(B, 24, 12)).reshape(B, Ma, 3, 3, 4)
@@ -665,6 +686,26 @@ class WindowedSolver:
                 G[..., N_POSE:] = np.eye(3)
                 res["GJ"] = G.reshape(B, 72, N_PARAMS)
         return res
+
+    def _forward_kinematics(self, rot: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Linear blend skinning transforms of the locked body, float64 numpy (what ``lbs.forward``
+        computes for the joints, without torch's per-call overhead; the body is evaluated only at
+        the marker points, so no mesh is needed).  rot (B,24,3,3) local rotations (root in the
+        world) -> (A (B,24,3,4) skinning transforms, G (B,24,3,3) world rotations, joints (B,24,3)
+        without translation)."""
+        B = rot.shape[0]
+        G = np.empty_like(rot)
+        t = np.empty((B, rot.shape[1], 3))
+        G[:, 0] = rot[:, 0]
+        t[:, 0] = self._rel_joints[0]
+        for ids, par in self._levels:
+            Gp = G[:, par]
+            G[:, ids] = Gp @ rot[:, ids]
+            t[:, ids] = np.einsum("bjrk,jk->bjr", Gp, self._rel_joints[ids]) + t[:, par]
+        A = np.empty((B, rot.shape[1], 3, 4))
+        A[..., :3] = G
+        A[..., 3] = t - np.einsum("bjrk,jk->bjr", G, self._rest_joints)
+        return A, G, t
 
     def _prior_terms(self, theta: np.ndarray, prior: np.ndarray, frames: int) -> tuple[np.ndarray, float]:
         """Pose-prior residual (B,72) (root excluded unless prior_includes_root) and its weight^2."""

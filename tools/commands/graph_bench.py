@@ -56,6 +56,30 @@ def _percentiles(ms: np.ndarray) -> dict:
             "max": float(ms.max()), "n": int(len(ms))}
 
 
+def steady_state(marker_pt: dict[int, int], answer_pt: dict[int, int]) -> dict:
+    """Split the solver's latency at the point it caught up after its bootstrap.
+
+    marker_pt / answer_pt: capture stamp -> publish time of the marker frame / of its first solved
+    frame.  The first frames wait for the bootstrap (the offline solver on the first seconds) and
+    the backlog behind it; steady state starts at the first frame published after every earlier
+    frame had been answered, and includes every later frame (later stalls count)."""
+    stamps = sorted(s for s in marker_pt if s in answer_pt)
+    if not stamps:
+        return {}
+    mp = np.array([marker_pt[s] for s in stamps], dtype=np.int64)
+    ap = np.array([answer_pt[s] for s in stamps], dtype=np.int64)
+    answered_before = np.maximum.accumulate(ap)  # [k]: every frame up to k answered by then
+    caught = np.flatnonzero(mp[1:] >= answered_before[:-1])
+    out = {"first_answer_after_s": float((ap.min() - mp[0]) / 1e9)}
+    if not len(caught):
+        out.update(caught_up_at_s=None, steady_frames=0, latency_steady_ms={})
+        return out
+    k = int(caught[0]) + 1
+    out.update(caught_up_at_s=float((mp[k] - mp[0]) / 1e9), steady_frames=int(len(stamps) - k),
+               latency_steady_ms=_percentiles((ap[k:] - mp[k:]) / 1e6))
+    return out
+
+
 def analyse(mcap: Path, expected_frames: int) -> dict:
     from uuomocap.protocol.recording import RecordingInfo, iter_recording
 
@@ -85,11 +109,24 @@ def analyse(mcap: Path, expected_frames: int) -> dict:
     if first_answer:
         lat = [(pt - marker_pt[s]) / 1e6 for s, pt in first_answer.items() if s in marker_pt]
         out["latency_marker_to_solved_ms"] = _percentiles(np.array(lat))
+        out.update(steady_state(marker_pt, first_answer))
         for kind, rows in solved.items():
             lat = [(pt - marker_pt[s]) / 1e6 for s, pt in rows if s in marker_pt]
             out[f"latency_marker_to_{kind}_ms"] = _percentiles(np.array(lat))
         out["solved_frames"] = len(first_answer)
     return out
+
+
+def steady_text(res: dict) -> str:
+    if "first_answer_after_s" not in res:
+        return ""
+    text = f"solver: first solved frame {res['first_answer_after_s']:.1f} s after the first marker frame (bootstrap); "
+    if res["caught_up_at_s"] is None:
+        return text + "never caught up with the replay (no steady state in this capture)\n"
+    lat = res["latency_steady_ms"]
+    return text + (f"caught up at {res['caught_up_at_s']:.1f} s\n"
+                   f"steady-state latency ({res['steady_frames']} frames from then on): p50 {lat['p50']:.2f} ms  "
+                   f"p95 {lat['p95']:.2f} ms  p99 {lat['p99']:.2f} ms  max {lat['max']:.2f} ms\n")
 
 
 def run(args) -> int:
@@ -145,6 +182,7 @@ def run(args) -> int:
             f"{res['drops']} drops, {res['duplicates']} duplicates\n"
             f"latency ({mode}): p50 {lat.get('p50', float('nan')):.2f} ms  p95 {lat.get('p95', float('nan')):.2f} ms  "
             f"p99 {lat.get('p99', float('nan')):.2f} ms  max {lat.get('max', float('nan')):.2f} ms\n"
+            + steady_text(res) +
             f"{'OK' if ok else 'FAILED'}  (recording and node logs: {work})")
     if args.json == "-":
         print(json.dumps(res, indent=2))
