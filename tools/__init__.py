@@ -7,3 +7,12 @@ Import layout (the repository folders are mapped into this one package):
 """
 
 __version__ = "0.1.0"
+
+import os as _os
+
+# One intra-op thread per process unless the user says otherwise.  The solver's tensors are small
+# (tens of markers, a few hundred vertices per op), and a graph runs several processes on the
+# same cores: torch's default of one thread per core then spins against the other nodes and
+# slows a solve several-fold (measured: 190 CPU-s with the default vs 30 CPU-s with one thread
+# for the same 75-frame solve on the loaded 2-core CI machine).  Must run before torch loads.
+_os.environ.setdefault("OMP_NUM_THREADS", "1")
