@@ -112,7 +112,8 @@ def _check(args) -> int:
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("sample", help="generate synthetic sessions with ground truth",
-                              description="Synthetic sessions with ground truth: `sample make DIR`, `sample check DIR`.")
+                              description="Synthetic sessions with ground truth: `sample make DIR`, `sample check DIR`, "
+                                          "`sample motion-from-markers FILE --out motion.npz` (a real labeled capture as a motion).")
     sub = p.add_subparsers(dest="sample_cmd", metavar="CMD")
     p.set_defaults(func=lambda a: (p.print_help(sys.stderr), 2)[1])
 
@@ -173,3 +174,7 @@ def register(subparsers) -> None:
     c.add_argument("dir")
     add_json_flag(c)
     c.set_defaults(func=_check)
+
+    from uuomocap.commands.sample_motion import register_motion_from_markers
+
+    register_motion_from_markers(sub)
