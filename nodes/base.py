@@ -254,6 +254,13 @@ class Node:
             if topic not in self._ready_done:
                 self._wait_ready(topic)
 
+    def input_waiting(self, port: str) -> bool:
+        """From a handler: is another message for input ``port`` already queued?  Receives what
+        the socket holds without blocking (nothing is dispatched while a handler runs), so a node
+        can defer optional work while it is behind."""
+        self._serve(0)
+        return any(self._port_for(e.topic) == port for e in self._pending)
+
     def end_stream(self, port: str) -> None:
         topic = self.outputs[port]
         seq, stamp = self._pub.last_sent.get(topic, (-1, 0))

@@ -27,15 +27,18 @@ class SolverNodeConfig:
     body_model: str = "open-low"  # open-low, open-full, or a SMPL .pkl/.npz path
     bootstrap_s: float = 2.5  # seconds of markers (+ prior) for the offline bootstrap
     lag_frames: int = 10  # fixed lag of the refined output
-    hop_frames: int = 5  # frames finalised per smoothing pass
+    hop_frames: int = 10  # frames finalised per smoothing pass (10: ~1/3 less smoothing work per frame than 5)
+    defer_refine_hops: int = 12  # while frames queue up, smoothing waits for up to this many hops
     estimate_iterations: int = 2
     smoothness_weight: float = 0.01
     publish_estimates: bool = True
     threads: int = 1  # torch intra-op threads (1 = deterministic and leaves a core to the graph)
 
     def __post_init__(self):
-        if self.bootstrap_s <= 0 or self.lag_frames < 0 or self.hop_frames < 1 or self.estimate_iterations < 1 or self.threads < 1:
-            raise ValueError("bootstrap_s > 0, lag_frames >= 0, hop_frames >= 1, estimate_iterations >= 1, threads >= 1 are required")
+        if (self.bootstrap_s <= 0 or self.lag_frames < 0 or self.hop_frames < 1 or self.estimate_iterations < 1 or self.threads < 1
+                or self.defer_refine_hops < 1):
+            raise ValueError("bootstrap_s > 0, lag_frames >= 0, hop_frames >= 1, estimate_iterations >= 1, threads >= 1, "
+                             "defer_refine_hops >= 1 are required")
 
 
 def load_models(name: str):
@@ -89,9 +92,16 @@ class Solver(Node):
         if self.solver is None:
             self._make_solver(msg)
         s = self.solver
+        was_locked = s.locked
         results = s.push_markers(msg.stamp_ns, msg.positions, msg.visible, msg.track_ids, msg.frame_index)
         self._publish(results)  # the estimate goes out before the smoothing pass runs
-        self._publish(s.refine_ready())
+        if s.locked and not was_locked:
+            self.log.info("bootstrap done in %.1f s (%d frames estimated)", s.stats["bootstrap_seconds"][-1], len(results))
+        # Behind the stream (frames queued, e.g. after the bootstrap): estimates first, the smoothing
+        # passes catch up once the queue is empty (bounded).  Lockstep never queues: deterministic.
+        c = self.config
+        if s.buffer_sizes()["pending"] >= c.lag_frames + c.defer_refine_hops * c.hop_frames or not self.input_waiting("markers"):
+            self._publish(s.refine_ready())
         self.counters.update({f"solver_{k}": v for k, v in s.stats.items() if isinstance(v, int)})
 
     def on_eos(self, port, env) -> None:
