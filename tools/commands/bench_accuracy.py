@@ -158,9 +158,10 @@ def format_tables(summary: dict, layout: list[tuple[str, str]], methods: list[st
         cols = PART_COLUMNS if partial else FULL_COLUMNS
         if pa_mpjpe and not partial:
             cols = cols[:2] + (PA_COLUMN,) + cols[2:]
-        width = 8 * len(cols) + 1
+        widths = [max(8, len(h) + 1) for _, h in cols]
+        width = sum(widths) + 1
         head1 = f"{'':<16}" + "".join(f"|{s:^{width - 1}}" for s in scens) + "|"
-        head2 = f"{'method':<16}" + "".join("|" + "".join(f"{h:>8}" for _, h in cols) for _ in scens) + "|"
+        head2 = f"{'method':<16}" + "".join("|" + "".join(f"{h:>{w}}" for (_, h), w in zip(cols, widths)) for _ in scens) + "|"
         lines += [f"{table}  (mm, MPJVE mm/s{'; part joints, found% = markers on the right part' if partial else ''})",
                   head1, head2, "-" * len(head2)]
         for m in methods:
@@ -168,9 +169,9 @@ def format_tables(summary: dict, layout: list[tuple[str, str]], methods: list[st
             for s in scens:
                 agg = summary.get(m, {}).get(s, {})
                 cells = ""
-                for key, _ in cols:
+                for (key, _), w in zip(cols, widths):
                     v = agg.get(key, float("nan"))
-                    cells += f"{v:8.1f}" if isinstance(v, float) and not math.isnan(v) else f"{'-':>8}"
+                    cells += f"{v:{w}.1f}" if isinstance(v, float) and not math.isnan(v) else f"{'-':>{w}}"
                 if agg.get("failed"):
                     cells = cells[:-1] + "!"
                 row += "|" + cells
