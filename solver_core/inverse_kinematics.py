@@ -45,6 +45,12 @@ class InverseKinematicsConfig:
     smoothness_weight: float = 0.0
     # Beyond the paper: Geman-McClure scale (metres) against mislabelled / ghost markers.
     robust_scale_m: float | None = None
+    # Beyond the paper (MoSh-style latent markers): a marker may sit off its surface point by a
+    # per-marker displacement in the posed triangle's frame (tangent, tangent, normal), estimated
+    # jointly with the pose under a Gaussian prior of this scale (metres).  Stage 3 picks points
+    # under an imperfect pose; letting the points slide with the pose removes the bias that the
+    # two steps alternating alone leave.  None = the paper's fixed points.
+    marker_slack_m: float | None = None
     # Paper Sec. "Implementation": L-BFGS lr 1.0 for IK; early stopping instead of 10k iterations.
     lbfgs: LBFGSConfig = LBFGSConfig(lr=1.0, max_iterations=200, iterations_per_step=10, rel_tol=1e-4)
     # Energies measure distances in this unit (regularizers.DISTANCE_UNIT_M explains why it matters).
@@ -81,6 +87,17 @@ def predicted_markers(
     return pts + offset_m * nrm
 
 
+def triangle_frames(corners: torch.Tensor) -> torch.Tensor:
+    """Orthonormal frames (..., 3, 3) of triangles (..., 3 corners, 3): rows = first edge
+    direction, in-plane perpendicular, unit normal."""
+    e1 = corners[..., 1, :] - corners[..., 0, :]
+    n = torch.linalg.cross(e1, corners[..., 2, :] - corners[..., 0, :], dim=-1)
+    n = n / n.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+    e1 = e1 / e1.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+    e2 = torch.linalg.cross(n, e1, dim=-1)
+    return torch.stack([e1, e2, n], dim=-2)
+
+
 def solve_inverse_kinematics(
     model,
     markers: torch.Tensor,
@@ -103,8 +120,63 @@ def solve_inverse_kinematics(
     result at Stage 5), in the same yaw convention as ``init``; shape_prior (B,); init: warm start.
     Returns (BodyParams, optimisation report).
     """
+    params, report, _ = _solve(model, markers, visible, attachment, prior_root, prior_body_pose, shape_prior, init, up,
+                               config, free, rate_hz, on_step)
+    return params, report
+
+
+def solve_inverse_kinematics_with_slack(
+    model, markers, visible, attachment, prior_root, prior_body_pose, shape_prior, init, up,
+    config: InverseKinematicsConfig, free: FreeParameters = FreeParameters(yaw=False), rate_hz: float = 30.0, on_step=None,
+) -> tuple[BodyParams, OptimizationReport, torch.Tensor]:
+    """Stage 4 with latent markers (``config.marker_slack_m`` must be set): as
+    ``solve_inverse_kinematics`` and also each assigned marker's displacement (Ma,3) metres in its
+    triangle frame (``triangle_frames``: along the first edge, in-plane perpendicular, normal -
+    the normal part is on top of the 9.5 mm offset).  ``fold_marker_slack`` turns it into new
+    surface points."""
+    if config.marker_slack_m is None:
+        raise ValueError("marker_slack_m is None: use solve_inverse_kinematics")
     return _solve(model, markers, visible, attachment, prior_root, prior_body_pose, shape_prior, init, up, config, free,
                   rate_hz, on_step)
+
+
+def fold_marker_slack(model, betas: torch.Tensor, attachment: MarkerAttachment, displacement: torch.Tensor,
+                      vertex_faces: torch.Tensor | None = None) -> MarkerAttachment:
+    """New surface points: each assigned marker's point moved by the tangential part of its
+    displacement (Ma,3) on the rest-pose surface of shape ``betas`` and snapped back onto the
+    closest face among those around its old face's corners (a step of a few cm at most)."""
+    from uuomocap.solver_core.chamfer import vertex_face_table
+    from uuomocap.solver_core.mesh import closest_point_on_triangles
+
+    assigned = attachment.assigned
+    if not bool(assigned.any()):
+        return attachment
+    with torch.no_grad():
+        rest = lbs.forward(model, betas.reshape(1, -1), torch.zeros(1, 24, 3)).vertices[0]  # (N,3)
+        faces = model.faces
+        fid = attachment.face_ids[assigned]
+        corners = rest[faces[fid]]  # (Ma,3,3)
+        frame = triangle_frames(corners)
+        point = (corners * attachment.bary[assigned][:, :, None]).sum(1)
+        target = point + displacement[:, 0:1] * frame[:, 0] + displacement[:, 1:2] * frame[:, 1]
+        if vertex_faces is None:
+            vertex_faces = vertex_face_table(faces, rest.shape[0])
+        # candidate faces: every face touching a vertex of the faces around the old face's corners
+        ring = vertex_faces[faces[fid]].reshape(len(fid), -1)  # (Ma, 3K) faces around the corners (-1 padded)
+        ring_v = faces[ring.clamp(min=0)].reshape(len(fid), -1)  # their vertices
+        cand = vertex_faces[ring_v].reshape(len(fid), -1)  # faces around those: a 2-ring patch
+        cand = torch.where(cand < 0, fid[:, None], cand)
+        tri = rest[faces[cand]]  # (Ma,C,3,3)
+        p = target[:, None].expand(-1, cand.shape[1], -1)
+        bary = closest_point_on_triangles(p, tri[..., 0, :], tri[..., 1, :], tri[..., 2, :])
+        q = (bary[..., None] * tri).sum(-2)
+        best = ((q - p) ** 2).sum(-1).argmin(1)
+        rows = torch.arange(len(fid))
+        face_ids = attachment.face_ids.clone()
+        new_bary = attachment.bary.clone()
+        face_ids[assigned] = cand[rows, best]
+        new_bary[assigned] = bary[rows, best].to(new_bary.dtype)
+    return MarkerAttachment(face_ids, new_bary, attachment.score_m)
 
 
 def _solve(model, markers, visible, attachment, prior_root, prior_body_pose, shape_prior, init, up, config, free, rate_hz,
@@ -127,18 +199,27 @@ def _solve(model, markers, visible, attachment, prior_root, prior_body_pose, sha
     trans = init.trans.clone().requires_grad_(free.trans)
     betas = init.betas.clone().requires_grad_(free.betas)
     yaw = init.yaw.clone().reshape(()).requires_grad_(free.yaw)
+    slack = config.marker_slack_m is not None
+    disp = torch.zeros(mk.shape[1], 3, dtype=mk.dtype, requires_grad=slack)
+    slack_scale = (config.marker_slack_m / unit) ** 2 if slack else 1.0
 
     def energy() -> torch.Tensor:
         out = pose_body(model, root, body, trans, betas, yaw, up, corners_pts)
         corners = out.vertices.reshape(out.vertices.shape[0], -1, 3, 3) / unit
         pts, nrm = posed_marker_frames(corners, bary)
-        if config.offset_model == "normal":
+        if slack:
+            frame = triangle_frames(corners)  # (T,Ma,3,3)
+            offset = (disp[None, :, :, None] * frame).sum(-2) + delta * nrm
+            sq = ((pts + offset - mk) ** 2).sum(-1)
+        elif config.offset_model == "normal":
             sq = ((pts + delta * nrm - mk) ** 2).sum(-1)
         else:
             sq = ((pts - mk).norm(dim=-1) - delta) ** 2
         if robust is not None:
             sq = robust * sq / (sq + robust)
         total = config.marker_weight * (sq * weight).sum() / weight_sum
+        if slack:  # per marker, on the scale of one marker's share of the data term
+            total = total + (disp**2).sum() / slack_scale / max(1, disp.shape[0])
         total = total + config.pose_weight * pose_prior_energy(
             body, prior_body_pose, root if config.prior_includes_root else None, prior_root
         )
@@ -147,5 +228,6 @@ def _solve(model, markers, visible, attachment, prior_root, prior_body_pose, sha
             total = total + config.smoothness_weight * smooth_scale * temporal_smoothness_energy(out.joints / unit)
         return total
 
-    report = run_lbfgs([root, body, trans, betas, yaw], energy, config.lbfgs, on_step)
-    return BodyParams(root.detach(), body.detach(), trans.detach(), betas.detach(), yaw.detach()), report
+    report = run_lbfgs([root, body, trans, betas, yaw, disp], energy, config.lbfgs, on_step)
+    params = BodyParams(root.detach(), body.detach(), trans.detach(), betas.detach(), yaw.detach())
+    return params, report, disp.detach() * unit

@@ -34,13 +34,16 @@ from uuomocap.solver_core.body_params import (
 from uuomocap.solver_core.inverse_kinematics import (
     InverseKinematicsConfig,
     predicted_markers,
+    fold_marker_slack,
     solve_inverse_kinematics,
+    solve_inverse_kinematics_with_slack,
 )
 from uuomocap.solver_core.marker_surface_correspondence import (
     CorrespondenceConfig,
     find_marker_surface_points,
 )
 from uuomocap.solver_core.chamfer import vertex_face_table
+from uuomocap.solver_core.cluster_consistency import ClusterConsistencyConfig, inconsistent_markers
 from uuomocap.solver_core.part_matching import PartMatch, PartMatchingConfig, full_translation, match_markers_to_part
 from uuomocap.solver_core.parts import vertex_dominant_joint
 from uuomocap.solver_core.pose_fitting import PoseFittingConfig, fit_pose
@@ -73,6 +76,11 @@ class SolverConfig:
     chamfer_frames: int = 150
     # Paper Sec. "Stage 5": repeat Stages 3-4 once (more rounds are beyond the paper).
     refinement_rounds: int = 1
+    # Beyond the paper (MoSh-style latent markers): at Stage 5 each marker may slide off its
+    # surface point with this prior scale (metres), jointly with the pose; None = the paper's Stage 5.
+    refinement_marker_slack_m: float | None = 0.03
+    # Beyond the paper: markers of one rigid cluster stay on neighbouring bones (cluster_consistency).
+    cluster_consistency: ClusterConsistencyConfig = ClusterConsistencyConfig()
     # Stop early for the stage ablation: None, "matching", "stage2" or "stage4".
     stop_after: str | None = None
     # None: decide full/partial body from the marker volume (published code); True/False forces it.
@@ -126,6 +134,48 @@ def part_vertex_ids(model, joints: tuple[int, ...]) -> torch.Tensor | None:
         return None
     dominant = torch.as_tensor(vertex_dominant_joint(model), dtype=torch.long)
     return torch.nonzero(torch.isin(dominant, torch.tensor(joints))).reshape(-1)
+
+
+def marker_joint_ids(model, attachment: MarkerAttachment) -> np.ndarray:
+    """(M,) dominant joint at each marker's surface point (-1 unassigned)."""
+    dominant = torch.as_tensor(vertex_dominant_joint(model), dtype=torch.long)
+    out = np.full(len(attachment.face_ids), -1, dtype=np.int64)
+    for m, (f, b) in enumerate(zip(attachment.face_ids.tolist(), attachment.bary)):
+        if f >= 0:
+            out[m] = int(dominant[int(model.faces[f][int(torch.argmax(b))])])
+    return out
+
+
+def enforce_cluster_consistency(model, markers, visible, params, up, attachment: MarkerAttachment, cluster_labels: np.ndarray,
+                                allowed_vertex_ids, config: SolverConfig, vertex_faces) -> tuple[MarkerAttachment, int]:
+    """Re-assign markers whose body part disagrees with their rigid cluster (cluster_consistency)
+    on the vertices of the cluster's joints.  markers (T,M,3), visible (T,M), params for those T
+    frames.  Returns (attachment, number of markers moved)."""
+    if not config.cluster_consistency.enabled:
+        return attachment, 0
+    bad = inconsistent_markers(cluster_labels, marker_joint_ids(model, attachment), model.parents.numpy(), config.cluster_consistency)
+    if not bad:
+        return attachment, 0
+    dominant = torch.as_tensor(vertex_dominant_joint(model), dtype=torch.long)
+    face_ids, bary, score = attachment.face_ids.clone(), attachment.bary.clone(), attachment.score_m.clone()
+    groups: dict[tuple[int, ...], list[int]] = {}
+    for m, joints in bad.items():
+        groups.setdefault(tuple(int(j) for j in joints), []).append(m)
+    moved = 0
+    for joints, members in groups.items():
+        verts = torch.nonzero(torch.isin(dominant, torch.tensor(joints))).reshape(-1)
+        if allowed_vertex_ids is not None:
+            verts = verts[torch.isin(verts, torch.as_tensor(allowed_vertex_ids))]
+        if verts.numel() == 0:
+            continue
+        idx = torch.as_tensor(members)
+        sub = find_marker_surface_points(model, markers[:, idx], visible[:, idx], params, up, verts, config.correspondence, vertex_faces)
+        ok = sub.face_ids >= 0
+        face_ids[idx[ok]] = sub.face_ids[ok]
+        bary[idx[ok]] = sub.bary[ok]
+        score[idx[ok]] = sub.score_m[ok]
+        moved += int(ok.sum())
+    return MarkerAttachment(face_ids, bary, score), moved
 
 
 def marker_part_names(model, attachment: MarkerAttachment) -> list[str]:
@@ -294,6 +344,8 @@ def solve(
     # ---- Stage 3 + Stage 4 on every frame
     with timed("stage3"):
         att = find_marker_surface_points(model, mk[cf_t], vis[cf_t], p2, up, part_output_ids, config.correspondence, vertex_faces)
+        att, moved = enforce_cluster_consistency(model, mk[cf_t], vis[cf_t], p2, up, att, labels, part_output_ids, config, vertex_faces)
+        diag["cluster_consistency_moved"] = moved
     with timed("stage4"):
         p4, rep = solve_inverse_kinematics(
             model, mk, vis, att, prior_root, prior_body, beta_prior, stage2_all, up, config.ik,
@@ -312,10 +364,21 @@ def solve(
             current_att = find_marker_surface_points(
                 model, mk, vis, current, up, part_output_ids, config.correspondence, vertex_faces, previous=current_att
             )
-            current, rep = solve_inverse_kinematics(
-                model, mk, vis, current_att, current.root_orient, current.body_pose, beta_prior, current, up, config.ik,
-                FreeParameters(yaw=False), rate_hz=rate_hz, on_step=stepper("stage5"),
-            )
+            current_att, moved = enforce_cluster_consistency(model, mk, vis, current, up, current_att, labels, part_output_ids,
+                                                             config, vertex_faces)
+            diag["cluster_consistency_moved"] = diag.get("cluster_consistency_moved", 0) + moved
+            if config.refinement_marker_slack_m is None:
+                current, rep = solve_inverse_kinematics(
+                    model, mk, vis, current_att, current.root_orient, current.body_pose, beta_prior, current, up, config.ik,
+                    FreeParameters(yaw=False), rate_hz=rate_hz, on_step=stepper("stage5"),
+                )
+            else:
+                ik_cfg = replace(config.ik, marker_slack_m=config.refinement_marker_slack_m)
+                current, rep, disp = solve_inverse_kinematics_with_slack(
+                    model, mk, vis, current_att, current.root_orient, current.body_pose, beta_prior, current, up, ik_cfg,
+                    FreeParameters(yaw=False), rate_hz=rate_hz, on_step=stepper("stage5"),
+                )
+                current_att = fold_marker_slack(model, current.betas, current_att, disp, vertex_faces)
             losses["stage5"] = rep.final_loss
     stage_results["stage5"] = current
     diag["stage5_marker_fit_mm"] = 1000 * marker_fit_error(model, mk, vis, current, current_att, up, config.ik.marker_offset_m)

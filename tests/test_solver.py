@@ -223,3 +223,30 @@ def test_solve_cli_writes_out_npz(full_session, tmp_path):
     for key in ("betas", "trans", "mocap_framerate", "stamps_ns", "marker_parts", "marker_faces", "marker_bary", "method"):
         assert key in arrays
     assert main(["solve", "--markers", str(full_session / "markers.c3d"), "--out", str(out), "--quiet"]) == 2  # no prior
+
+
+def test_cluster_consistency_moves_a_marker_that_left_its_rigid_group():
+    """Markers of one rigid cluster on the left arm, one of them labelled on the torso: only that
+    one is flagged, and it may move to the arm's joints (and their tree neighbours) only."""
+    from uuomocap.solver_core.body_model import load_body_model
+    from uuomocap.solver_core.cluster_consistency import cluster_joint_owners, inconsistent_markers, tree_distances
+
+    model = load_body_model("open-low")
+    names = model.joint_names
+    parents = model.parents.numpy()
+    j = {n: names.index(n) for n in names}
+    dist = tree_distances(parents)
+    assert dist[j["left_wrist"], j["left_elbow"]] == 1 and dist[j["left_shoulder"], j["spine2"]] == 3
+    assert (dist == dist.T).all() and (np.diag(dist) == 0).all()
+    arm = [j["left_shoulder"], j["left_elbow"], j["left_elbow"], j["left_wrist"], j["spine2"]]
+    torso = [j["spine2"], j["spine2"], j["spine3"], j["spine1"], j["left_collar"]]
+    clusters = np.array([0] * 5 + [1] * 5)
+    joints = np.array(arm + torso)
+    owners = cluster_joint_owners(clusters, joints, len(names))
+    assert owners[j["spine2"]] == 1 and owners[j["left_elbow"]] == 0
+    bad = inconsistent_markers(clusters, joints, parents)
+    assert list(bad) == [4]  # the arm cluster's torso marker; the torso's collar marker is one step away
+    allowed = {names[k] for k in bad[4]}
+    assert {"left_shoulder", "left_elbow", "left_wrist", "left_collar", "left_hand"} == allowed
+    # a singleton says nothing about its marker
+    assert inconsistent_markers(np.array([0, 0, 1]), np.array([j["left_elbow"], j["left_wrist"], j["head"]]), parents) == {}

@@ -1,0 +1,98 @@
+"""Rigid-cluster consistency of the marker-surface correspondence (beyond the paper).
+
+Marker segmentation (paper Sec. "Step 1") finds groups of markers that move rigidly together;
+a group sits on one or a few neighbouring bones.  Stage 3 chooses every marker's surface point
+independently under the Stage-2 body, so when that body is wrong somewhere (an arm held close to
+the torso, say) a few markers land on another part of the body entirely - a torso point for an
+upper-arm marker - and no later stage can move them back: the refinement only searches near
+the previous point.  Those markers are visible as disagreements with their own rigid group.
+
+Each joint is *owned* by the cluster with the most markers on it (ties: the larger cluster).
+A marker whose joint is more than ``max_tree_steps`` kinematic-tree steps from every joint its
+own cluster owns is inconsistent; it is re-assigned on the vertices of its cluster's joints
+(and their tree neighbours).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class ClusterConsistencyConfig:
+    # Beyond the paper: switch (False = the paper's independent per-marker Stage 3).
+    enabled: bool = True
+    # A marker may sit this many tree steps from its cluster's joints (1: a bone next to them,
+    # e.g. a forearm marker near the elbow crease skinned to the upper arm).
+    max_tree_steps: int = 1
+    # Only clusters with at least this many markers vote (a singleton says nothing).
+    min_cluster_size: int = 2
+
+
+def tree_distances(parents: np.ndarray) -> np.ndarray:
+    """(J,J) number of edges between joints of the kinematic tree (parents[0] < 0 for the root)."""
+    parents = np.asarray(parents)
+    n = len(parents)
+    adj = [[] for _ in range(n)]
+    for j, p in enumerate(parents):
+        if p >= 0:
+            adj[j].append(int(p))
+            adj[int(p)].append(j)
+    dist = np.full((n, n), n, dtype=np.int64)
+    for s in range(n):
+        dist[s, s] = 0
+        frontier = [s]
+        while frontier:
+            nxt = []
+            for a in frontier:
+                for b in adj[a]:
+                    if dist[s, b] > dist[s, a] + 1:
+                        dist[s, b] = dist[s, a] + 1
+                        nxt.append(b)
+            frontier = nxt
+    return dist
+
+
+def cluster_joint_owners(cluster_labels: np.ndarray, marker_joints: np.ndarray, num_joints: int) -> np.ndarray:
+    """(J,) cluster owning each joint (-1: no marker on it).
+
+    cluster_labels (M,) int; marker_joints (M,) dominant joint per marker (-1 unassigned)."""
+    cluster_labels = np.asarray(cluster_labels)
+    marker_joints = np.asarray(marker_joints)
+    sizes = np.bincount(cluster_labels, minlength=int(cluster_labels.max()) + 1 if len(cluster_labels) else 1)
+    owners = np.full(num_joints, -1, dtype=np.int64)
+    for j in range(num_joints):
+        on = cluster_labels[marker_joints == j]
+        if len(on) == 0:
+            continue
+        counts = np.bincount(on, minlength=len(sizes))
+        best = np.flatnonzero(counts == counts.max())
+        owners[j] = int(best[np.argmax(sizes[best])])
+    return owners
+
+
+def inconsistent_markers(
+    cluster_labels: np.ndarray, marker_joints: np.ndarray, parents: np.ndarray, config: ClusterConsistencyConfig = ClusterConsistencyConfig()
+) -> dict[int, np.ndarray]:
+    """Markers whose joint disagrees with their rigid cluster -> the joints (K,) they may move to.
+
+    cluster_labels (M,), marker_joints (M,) (-1 unassigned), parents (J,)."""
+    cluster_labels = np.asarray(cluster_labels)
+    marker_joints = np.asarray(marker_joints)
+    num_joints = len(parents)
+    owners = cluster_joint_owners(cluster_labels, marker_joints, num_joints)
+    dist = tree_distances(parents)
+    sizes = np.bincount(cluster_labels)
+    out: dict[int, np.ndarray] = {}
+    for m, (c, j) in enumerate(zip(cluster_labels, marker_joints)):
+        if j < 0 or sizes[c] < config.min_cluster_size:
+            continue
+        owned = np.flatnonzero(owners == c)
+        if len(owned) == 0:
+            continue
+        if dist[j, owned].min() > config.max_tree_steps:
+            allowed = np.flatnonzero(dist[:, owned].min(axis=1) <= config.max_tree_steps)
+            out[m] = allowed
+    return out
