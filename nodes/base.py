@@ -255,11 +255,12 @@ class Node:
                 self._wait_ready(topic)
 
     def input_waiting(self, port: str) -> bool:
-        """From a handler: is another message for input ``port`` already queued?  Receives what
-        the socket holds without blocking (nothing is dispatched while a handler runs), so a node
-        can defer optional work while it is behind."""
+        """From a handler: is another data message for input ``port`` already queued (control
+        messages such as the end of the stream do not count)?  Receives what the socket holds
+        without blocking (nothing is dispatched while a handler runs), so a node can defer
+        optional work while it is behind."""
         self._serve(0)
-        return any(self._port_for(e.topic) == port for e in self._pending)
+        return any(e.type not in CONTROL_TYPES and self._port_for(e.topic) == port for e in self._pending)
 
     def end_stream(self, port: str) -> None:
         topic = self.outputs[port]

@@ -93,12 +93,16 @@ class Solver(Node):
             self._make_solver(msg)
         s = self.solver
         was_locked = s.locked
-        results = s.push_markers(msg.stamp_ns, msg.positions, msg.visible, msg.track_ids, msg.frame_index)
+        # Behind the stream (frames queued, e.g. after the bootstrap): one Gauss-Newton iteration per
+        # estimate, and the smoothing passes catch up once the queue is empty (bounded).  Lockstep
+        # never queues a frame, so it always runs the full budget: deterministic.
+        behind = self.input_waiting("markers")
+        self.count("behind" if behind else "on_time")
+        results = s.push_markers(msg.stamp_ns, msg.positions, msg.visible, msg.track_ids, msg.frame_index,
+                                 iterations=1 if behind else None)
         self._publish(results)  # the estimate goes out before the smoothing pass runs
         if s.locked and not was_locked:
             self.log.info("bootstrap done in %.1f s (%d frames estimated)", s.stats["bootstrap_seconds"][-1], len(results))
-        # Behind the stream (frames queued, e.g. after the bootstrap): estimates first, the smoothing
-        # passes catch up once the queue is empty (bounded).  Lockstep never queues: deterministic.
         c = self.config
         if s.buffer_sizes()["pending"] >= c.lag_frames + c.defer_refine_hops * c.hop_frames or not self.input_waiting("markers"):
             self._publish(s.refine_ready())
@@ -110,14 +114,22 @@ class Solver(Node):
         self._publish(self.solver.flush())
         self.end_stream("solved")
 
+    def _labels(self) -> tuple:
+        """(faces, bary, parts) of the current correspondence; the part names (~0.4 ms) are only
+        recomputed when the correspondence changed."""
+        s = self.solver
+        if not s.locked:
+            return None, None, []
+        cached = getattr(self, "_labels_cache", None)
+        if cached is None or not (np.array_equal(cached[0], s.face_ids) and np.array_equal(cached[1], s.bary.astype(np.float32))):
+            labels = s.labels
+            cached = self._labels_cache = (labels.face_ids.astype(np.int32), labels.bary.astype(np.float32), list(labels.parts))
+        return cached
+
     def _publish(self, results) -> None:
         if not results:
             return
-        labels = self.solver.labels
-        faces = bary = None
-        parts: list[str] = []
-        if labels is not None:
-            faces, bary, parts = labels.face_ids.astype(np.int32), labels.bary.astype(np.float32), list(labels.parts)
+        faces, bary, parts = self._labels()
         for r in results:
             if r.kind == "estimate" and not self.config.publish_estimates:
                 continue

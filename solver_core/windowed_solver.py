@@ -419,9 +419,11 @@ class WindowedSolver:
         results += self.refine_ready()
         return results
 
-    def push_markers(self, stamp_ns: int, positions, visible=None, track_ids=None, frame_index: int | None = None) -> list[WindowResult]:
+    def push_markers(self, stamp_ns: int, positions, visible=None, track_ids=None, frame_index: int | None = None,
+                     iterations: int | None = None) -> list[WindowResult]:
         """The causal half of ``add_markers``: the estimate(s) only (a node publishes them before
-        running the smoothing pass with ``refine_ready``)."""
+        running the smoothing pass with ``refine_ready``).  iterations: Gauss-Newton iterations of
+        this frame's estimate (default ``estimate_iterations``; a node that is behind uses fewer)."""
         pos = np.asarray(positions, dtype=np.float64)
         if pos.ndim != 2 or pos.shape[1] != 3:
             raise ValueError(f"positions must be (M, 3), got {pos.shape}")
@@ -442,7 +444,7 @@ class WindowedSolver:
         if not self.locked:
             return self._collect_bootstrap(frame)
         t0 = time.perf_counter()
-        out = [self._estimate(frame)]
+        out = [self._estimate(frame, iterations or self.config.estimate_iterations)]
         self.timing["estimate_s"] += time.perf_counter() - t0
         self.timing["estimates"] += 1
         if self._boot is not None:  # a re-bootstrap is collecting while estimates go on
@@ -762,7 +764,7 @@ class WindowedSolver:
                 out[i, :3] = rotation_vector(self.camera_tilt @ rotation_matrices(out[i, :3]))
         return out
 
-    def _estimate(self, frame: _Frame) -> WindowResult:
+    def _estimate(self, frame: _Frame, iterations: int) -> WindowResult:
         c = self.config
         prev = self._history[-1] if self._history else None
         theta0 = prev.theta.copy() if prev is not None else np.zeros(N_POSE)
@@ -777,7 +779,7 @@ class WindowedSolver:
         prior = self._prior_at(frame.stamp) if self.has_prior else None
         frame.prior = prior if prior is not None else (prev.theta.copy() if prev is not None else theta0.copy())
         mk, vis = frame.markers[None], frame.visible[None]
-        theta, trans = self._gauss_newton(theta0[None], trans0[None], mk, vis, frame.prior[None], c.estimate_iterations)
+        theta, trans = self._gauss_newton(theta0[None], trans0[None], mk, vis, frame.prior[None], iterations)
         lin = self._linearize(theta, trans, mk, vis, jacobian=False)
         frame.theta, frame.trans = theta[0], trans[0]
         frame.residual, frame.joints = float(lin["residual"][0]), lin["joints"][0]
