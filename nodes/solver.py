@@ -28,7 +28,7 @@ class SolverNodeConfig:
     bootstrap_s: float = 2.5  # seconds of markers (+ prior) for the offline bootstrap
     lag_frames: int = 10  # fixed lag of the refined output
     hop_frames: int = 10  # frames finalised per smoothing pass (10: ~1/3 less smoothing work per frame than 5)
-    defer_refine_hops: int = 12  # while frames queue up, smoothing waits for up to this many hops
+    defer_refine_hops: int = 2  # while frames queue up, smoothing waits for up to this many hops, then runs one pass per frame
     estimate_iterations: int = 2
     smoothness_weight: float = 0.01
     publish_estimates: bool = True
@@ -94,8 +94,8 @@ class Solver(Node):
         s = self.solver
         was_locked = s.locked
         # Behind the stream (frames queued, e.g. after the bootstrap): one Gauss-Newton iteration per
-        # estimate, and the smoothing passes catch up once the queue is empty (bounded).  Lockstep
-        # never queues a frame, so it always runs the full budget: deterministic.
+        # estimate, and the smoothing passes are deferred (bounded) and spread out.  Lockstep never
+        # queues a frame, so it always runs the full budget: deterministic.
         behind = self.input_waiting("markers")
         self.count("behind" if behind else "on_time")
         results = s.push_markers(msg.stamp_ns, msg.positions, msg.visible, msg.track_ids, msg.frame_index,
@@ -104,8 +104,10 @@ class Solver(Node):
         if s.locked and not was_locked:
             self.log.info("bootstrap done in %.1f s (%d frames estimated)", s.stats["bootstrap_seconds"][-1], len(results))
         c = self.config
-        if s.buffer_sizes()["pending"] >= c.lag_frames + c.defer_refine_hops * c.hop_frames or not self.input_waiting("markers"):
-            self._publish(s.refine_ready())
+        if not self.input_waiting("markers"):
+            self._publish(s.refine_ready())  # on time: every due smoothing pass
+        elif s.buffer_sizes()["pending"] >= c.lag_frames + c.defer_refine_hops * c.hop_frames:
+            self._publish(s.refine_ready(max_passes=1))  # behind: one pass per frame at most (bounded stall)
         self.counters.update({f"solver_{k}": v for k, v in s.stats.items() if isinstance(v, int)})
 
     def on_eos(self, port, env) -> None:

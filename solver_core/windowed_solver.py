@@ -453,12 +453,15 @@ class WindowedSolver:
                 self._bootstrap(list(self._boot), rebootstrap=True)
         return out
 
-    def refine_ready(self) -> list[WindowResult]:
-        """Run the smoothing pass when a hop of frames has left the lag; returns refined frames."""
+    def refine_ready(self, max_passes: int | None = None) -> list[WindowResult]:
+        """Run the smoothing pass when a hop of frames has left the lag (every due pass, or at most
+        ``max_passes``: a caller that is behind spreads them out); returns refined frames."""
         c = self.config
         out: list[WindowResult] = []
-        while len(self._pending) >= c.lag_frames + c.hop_frames:
+        passes = 0
+        while len(self._pending) >= c.lag_frames + c.hop_frames and (max_passes is None or passes < max_passes):
             out += self._refine(c.hop_frames)
+            passes += 1
         return out
 
     def flush(self) -> list[WindowResult]:

@@ -7,7 +7,10 @@ frame recorded, sequence numbers without gaps. Latency:
       marker frame published -> solved frame published (same capture stamp; the
       first answer per frame, i.e. the 'estimate', and the 'refined' one);
   otherwise: marker frame published -> received by the recorder.
-Both ends are CLOCK_MONOTONIC on this machine.
+Both ends are CLOCK_MONOTONIC on this machine.  With a solver the first frames wait for its
+bootstrap (the offline solver on the first seconds) and the backlog behind it, so the solver's
+latency is also split at the point it caught up: printed are the time of the first solved frame,
+when the solver caught up, and the steady-state latency of every frame from then on.
 """
 
 from __future__ import annotations
