@@ -121,9 +121,16 @@ class WindowedSolverConfig:
     # A marker whose residual exceeds this for slip_frames visible frames is re-assigned.
     slip_threshold_m: float = 0.03
     slip_frames: int = 15
+    # More than this fraction of the visible assigned markers over the slip threshold in one frame
+    # is a pose failure, not slipping markers: no re-assignment.
+    slip_storm_fraction: float = 0.25
+    # An estimate with a mean residual above this is retried from the frame's pose prior with
+    # recover_iterations Gauss-Newton iterations (the better of the two is kept).
+    recover_threshold_m: float = 0.02
+    recover_iterations: int = 8
     # Mean residual above this for degrade_s seconds -> re-bootstrap.
     degrade_threshold_m: float = 0.04
-    degrade_s: float = 1.0
+    degrade_s: float = 0.5
     # Periodic correspondence re-check on the recent window (0 = never).
     recheck_period_s: float = 2.0
     recheck_frames: int = 48
@@ -784,6 +791,18 @@ class WindowedSolver:
         mk, vis = frame.markers[None], frame.visible[None]
         theta, trans = self._gauss_newton(theta0[None], trans0[None], mk, vis, frame.prior[None], iterations)
         lin = self._linearize(theta, trans, mk, vis, jacobian=False)
+        if float(lin["residual"][0]) > c.recover_threshold_m and prev is not None:
+            # Lost track of a fast or unusual motion (the warm start is in the wrong basin): try
+            # again from this frame's pose prior with more iterations and keep the better fit.
+            # Without this the bad pose makes many markers look 'slipped' at once and their
+            # re-assignment under the wrong pose corrupts the lock.
+            start = frame.prior.copy()
+            start[:3] = prev.theta[:3]
+            th2, tr2 = self._gauss_newton(start[None], prev.trans[None].copy(), mk, vis, frame.prior[None], c.recover_iterations)
+            lin2 = self._linearize(th2, tr2, mk, vis, jacobian=False)
+            self.stats["recoveries"] = self.stats.get("recoveries", 0) + 1
+            if float(lin2["residual"][0]) < float(lin["residual"][0]):
+                theta, trans, lin = th2, tr2, lin2
         frame.theta, frame.trans = theta[0], trans[0]
         frame.residual, frame.joints = float(lin["residual"][0]), lin["joints"][0]
         self._pending.append(frame)
@@ -935,6 +954,12 @@ class WindowedSolver:
         dist = np.zeros(len(vis))
         dist[self._assigned] = lin["dist"][0]
         over = vis & assigned & (dist > c.slip_threshold_m)
+        storm = bool(over.sum() > c.slip_storm_fraction * max(1, int((vis & assigned).sum())))
+        if storm:
+            # many markers off at once: the pose is wrong, not the markers - re-assigning them
+            # under this pose would corrupt the lock; the degrade check below handles it
+            over[:] = False
+            self.stats["slip_storms"] = self.stats.get("slip_storms", 0) + 1
         self._slip_run = np.where(over, self._slip_run + 1, np.where(vis, 0, self._slip_run))
         slipped = np.flatnonzero(self._slip_run >= c.slip_frames)
         # unassigned markers seen long enough
@@ -946,10 +971,15 @@ class WindowedSolver:
             self._assign(np.union1d(slipped, fresh), frames=max(c.new_track_frames, c.slip_frames), count_new=len(fresh))
         # whole-fit degradation or a new subject -> re-bootstrap (estimates continue meanwhile)
         n_vis = int(vis.sum())
-        bad = (frame.residual > c.degrade_threshold_m) or (n_vis >= 4 and (vis & ~(self.face_ids >= 0)).sum() > 0.5 * n_vis)
+        bad = storm or (frame.residual > c.degrade_threshold_m) or (n_vis >= 4 and (vis & ~(self.face_ids >= 0)).sum() > 0.5 * n_vis)
         self._degrade_run = self._degrade_run + 1 if bad else 0
         if self._degrade_run >= c.degrade_s * rate and self._boot is None:
             self._boot = self._new_boot_buffer()
+            # the markers since the fit went bad are already here (the bootstrap needs markers and
+            # priors, not our estimates): start the window with them instead of waiting for all of
+            # it.  Not earlier frames: after a marker-set change they belong to the old set.
+            bad_frames = min(self._degrade_run, len(self._history), self._boot.maxlen - 1)
+            self._boot.extend(list(self._history)[len(self._history) - bad_frames:])
             self._degrade_run = 0
         # periodic re-check of every correspondence on the recent window
         self._since_recheck += 1
