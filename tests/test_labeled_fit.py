@@ -11,7 +11,7 @@ import torch
 from uuomocap.solver_core.labeled_fit import (LabeledFitConfig, fit_labeled_markers, frame_rms, label_landmark,
                                               params_joints, to_z_up)
 
-HAMNER = Path("/work/shared/data/markers/opensim_hamner_running.trc")
+HAMNER = Path(__file__).resolve().parents[2] / "shared" / "data" / "markers" / "opensim_hamner_running.trc"
 
 
 def setup_module(module):
