@@ -69,7 +69,7 @@ def video_rigid_registration(
     centre = out.joints[:, :1]
     pts = (out.vertices - centre)[None].expand(len(yaw_starts_deg), -1, -1, -1)
     starts = torch.tensor([math.radians(d) for d in yaw_starts_deg], dtype=torch.float32)
-    yaw, _, err, _ = rigid_yaw_icp(pts, mk[sel], vis[sel], up, starts, icp_iterations)
+    yaw, _, err, _, _ = rigid_yaw_icp(pts, mk[sel], vis[sel], up, starts, icp_iterations)
     best = int(torch.argmin(err))
     all_ids = np.arange(model.v_template.shape[0])
     trans = full_translation(model, mk, vis, root, body, betas, up, all_ids, yaw[best])

@@ -31,6 +31,12 @@ from uuomocap.solver_core.pose_fitting import chamfer_to_body
 from uuomocap.solver_core.optimization import LBFGSConfig, run_lbfgs
 from uuomocap.solver_core.regularizers import DISTANCE_UNIT_M
 from uuomocap.solver_core.parts import connected_subtrees, vertex_dominant_joint
+from uuomocap.solver_core.segment_rotation import (
+    bone_relative_rotations,
+    cluster_relative_rotations,
+    frame_pairs,
+    turn_mismatch,
+)
 
 
 @dataclass(frozen=True)
@@ -62,6 +68,26 @@ class PartMatchingConfig:
     # Bound on the enumeration: K is capped here for partial bodies (a part of the paper's
     # appendix has at most 5 joints; 8 leaves room for over-segmentation).
     max_part_joints: int = 8
+    # Beyond the paper: K from the clusters is only a lower bound on the part's joints (bones
+    # that do not bend against each other during the take fall into one cluster: a swinging arm
+    # is often one cluster), and a too-small candidate cannot hold all markers, so partial-body
+    # candidates have at least this many joints (the paper's parts have 3-4).
+    min_part_joints: int = 4
+    # Beyond the paper: weight of the turn signature (segment_rotation) in the candidate ranking,
+    # per squared radian of mismatch between the clusters' measured turns and the prior's bones'.
+    # A torso surface fits an arm's markers as well as the arm does; it does not turn like it.
+    turn_weight: float = 60.0
+    # Beyond the paper: calibrated capture volumes put the floor at height 0 along the up axis
+    # (the ground plane of Vicon, OptiTrack and Qualisys calibrations), so a partial-body
+    # candidate must place the whole body's lowest point near the floor for much of the take:
+    # arm markers read as a thigh would float the feet 40 cm up.  None disables the term.
+    floor_height_m: float | None = 0.0
+    # Weight of that term per (0.1 m)^2 beyond a dead zone (prior pose errors move the feet).
+    floor_weight: float = 10.0
+    floor_dead_zone_m: float = 0.05
+    # Beyond the paper (candidate-level MHT): partial-body candidates handed on, with their yaw
+    # hypotheses, to Stage 1, which decides between them by the fit after IK.
+    partial_alternatives: int = 3
     # Bound on the enumeration: never test more candidates than this (after pruning).
     max_candidates: int = 400
     # Energies measure distances in this unit (regularizers.DISTANCE_UNIT_M explains why it matters).
@@ -93,6 +119,8 @@ class PartMatch:
     yaw_starts: list[YawStart] = field(default_factory=list)
     ranking: list[tuple[tuple[int, ...], float]] = field(default_factory=list)  # (joints, E_S) best first
     tilt: np.ndarray = field(default_factory=lambda: np.eye(3))  # (3,3) root offset (camera tilt) at ``yaw``
+    turn_mismatch: float = 0.0         # rad^2, the turn-signature term of the chosen candidate
+    alternatives: list["PartMatch"] = field(default_factory=list)  # next-best partial candidates
 
 
 # ----------------------------------------------------------------------------- geometry helpers
@@ -159,8 +187,8 @@ def rigid_yaw_icp(
     itself (a standing body's markers fit it 20 cm too low as well), a shared offset cannot.
     points: (H, S, N, 3) model points relative to the rotation centre; markers: (S, M, 3);
     visible: (S, M) bool; yaw_start: (H,) radians.
-    Returns (yaw (H,), offset (H, S, 3), mean squared distance (H,), tilt (H,3,3)) with
-    world = R(yaw) tilt p + offset.
+    Returns (yaw (H,), offset (H, S, 3), mean squared distance (H,), tilt (H,3,3), nearest
+    point index (H, S, M) of the last iteration) with world = R(yaw) tilt p + offset.
     """
     hyp, frames, _, _ = points.shape
     w = visible.to(points.dtype)  # (S, M)
@@ -197,7 +225,23 @@ def rigid_yaw_icp(
         shift = m_c[None] - torch.einsum("hij,hj->hi", rot, q_c)
     # world = R (p - p_ref) + m_ref + shift = R p + (m_ref + shift - R p_ref)
     offset = m_ref[None] + shift[:, None] - torch.einsum("hij,hsj->hsi", rot, p_ref)
-    return yaw, offset, err, tilt
+    return yaw, offset, err, tilt, idx.reshape(hyp, frames, -1)
+
+
+def floor_energy(points: torch.Tensor, yaw: torch.Tensor, tilt: torch.Tensor, offset: torch.Tensor, up: torch.Tensor,
+                 config: PartMatchingConfig) -> torch.Tensor:
+    """Floor term of each hypothesis: how far the whole body's lowest point sits from the floor.
+
+    points (S,N,3) whole-body vertices about the rotation centre; yaw (H,); tilt (H,3,3);
+    offset (H,S,3) with world = R(yaw) tilt p + offset.  The lowest point of each frame is taken
+    at its 20th percentile over frames (a jump lifts both feet for a while).  Returns (H,).
+    """
+    rot = _batch_yaw(yaw, up.to(yaw.dtype)) @ tilt
+    up_body = torch.einsum("i,hij->hj", up.to(rot.dtype), rot)  # up expressed in the body frame
+    low = torch.einsum("snj,hj->hsn", points.to(rot.dtype), up_body).amin(-1) + offset.to(rot.dtype) @ up.to(rot.dtype)
+    ground = torch.quantile(low, 0.2, dim=1)
+    miss = ((ground - config.floor_height_m).abs() - config.floor_dead_zone_m).clamp(min=0.0)
+    return config.floor_weight * (miss / 0.1) ** 2
 
 
 def _kabsch_yaw_tilt(q: torch.Tensor, m: torch.Tensor, w: torch.Tensor, up: torch.Tensor, max_tilt: float):
@@ -300,68 +344,89 @@ def match_markers_to_part(
     if full_body:
         candidates = [tuple(range(n_joints))]
     else:
-        size = max(1, min(k, config.max_part_joints, n_joints))
+        size = max(1, min(max(k, config.min_part_joints), config.max_part_joints, n_joints))
         candidates = candidate_part_joints(model.parents, size, config.prune_overlap, config.max_candidates)
 
     unit2 = config.distance_unit_m**2
     yaw_starts = torch.tensor([math.radians(d) for d in config.yaw_starts_deg], dtype=torch.float32)
-    scored: list[tuple] = []  # (best energy, joints, yaw (H,), offset (H,S,3), energy (H,), tilt (H,3,3))
+    use_turns = not full_body and config.turn_weight > 0
+    if use_turns:
+        pairs = frame_pairs(len(sel))
+        cluster_turns, turn_valid = cluster_relative_rotations(mk.double().numpy(), vis.numpy().astype(bool), cluster_labels, pairs)
+        bone_turns = bone_relative_rotations(rest.joint_rotations.double(), pairs)
+        use_turns = bool(turn_valid.any())
+    labels_t = torch.as_tensor(cluster_labels, dtype=torch.long)
+    vis_f = vis.double()
+    # (best energy, joints, yaw (H,), offset (H,S,3), energy (H,), tilt (H,3,3), turn mismatch (H,),
+    #  unrefined terms (H,))
+    scored: list[tuple] = []
     for cand in candidates:
         vid = torch.nonzero(torch.isin(dominant, torch.tensor(cand))).reshape(-1)
         if vid.numel() == 0:
             continue
         pts = pts_all[:, vid]
-        yaw, offset, err, tilt = rigid_yaw_icp(
+        yaw, offset, err, tilt, nearest = rigid_yaw_icp(
             pts[None].expand(len(yaw_starts), -1, -1, -1), mk, vis, up, yaw_starts, config.icp_iterations,
             math.radians(config.max_tilt_deg),
         )
         energy = config.chamfer_weight * err / unit2
-        scored.append((float(energy.min()), cand, yaw, offset, energy, tilt))
+        turns = torch.zeros(len(yaw_starts), dtype=torch.float64)
+        extra = torch.zeros(len(yaw_starts))  # terms the L-BFGS refinement does not optimise
+        if use_turns:
+            # each marker is judged on the bone under its nearest vertex, by its cluster's turns
+            frame_rot = (_batch_yaw(yaw, up) @ tilt).double()
+            mism = turn_mismatch(cluster_turns, turn_valid, bone_turns, frame_rot)  # (H,K,J)
+            bone = dominant[vid][nearest]  # (H,S,M)
+            per_marker = torch.stack([mism[h][labels_t[None].expand_as(bone[h]), bone[h]] for h in range(len(yaw))])
+            turns = (per_marker * vis_f[None]).sum((1, 2)) / vis_f.sum().clamp(min=1.0)
+            extra = extra + config.turn_weight * turns.float()
+        if not full_body and config.floor_height_m is not None:
+            extra = extra + floor_energy(pts_all, yaw, tilt, offset, up, config).float()
+        energy = energy + extra
+        scored.append((float(energy.min()), cand, yaw, offset, energy, tilt, turns, extra))
     if not scored:
         raise ValueError("no part candidate has vertices")
     scored.sort(key=lambda s: s[0])
 
     # refine the best few with the paper's energy over (yaw, translation, shape)
     refined: list[tuple[float, tuple[int, ...], float, torch.Tensor, torch.Tensor]] = []
-    for energy0, cand, yaw, offset, energies, tilt in scored[: max(1, config.refine_top)]:
+    top = max(1, config.refine_top, 0 if full_body else config.partial_alternatives)
+    for energy0, cand, yaw, offset, energies, tilt, turns, extra in scored[:top]:
         best_h = int(torch.argmin(energies))
         vid = torch.nonzero(torch.isin(dominant, torch.tensor(cand))).reshape(-1)
         e, y, tr, b = _refine_candidate(
             model, mk, vis, prior_root[sel_t], prior_body_pose[sel_t], shape_prior, up, vid,
             float(yaw[best_h]), offset[best_h] - centre[:, 0], config, tilt[best_h],
         )
+        # the turn and floor terms are not refined (they barely move with it): carried over
+        e += float(extra[best_h])
         refined.append((e, cand, y, tr, b))
     refined.sort(key=lambda r: r[0])
-    best_energy, best_cand, best_yaw, _, best_betas = refined[0]
-    best = next(s for s in scored if s[1] == best_cand)
-    vid = torch.nonzero(torch.isin(dominant, torch.tensor(best_cand))).reshape(-1)
-
-    # yaw hypotheses of the chosen candidate: each start's ICP optimum (the refined one replaces its own)
-    starts = []
-    for h, start in enumerate(config.yaw_starts_deg):
-        starts.append(YawStart(start, float(best[2][h]), float(best[4][h]), best[5][h].double().numpy()))
-    best_h = int(torch.argmin(best[4]))
-    best_tilt = best[5][best_h]
-    starts[best_h] = YawStart(starts[best_h].start_deg, best_yaw, best_energy, best_tilt.double().numpy())
-
-    trans = full_translation(model, markers, visible, apply_root_offset(prior_root, best_tilt), prior_body_pose, best_betas, up,
-                             vid, torch.tensor(best_yaw))
     ranking = [(r[1], r[0]) for r in refined] + [(s[1], s[0]) for s in scored[len(refined):]]
-    return PartMatch(
-        joints=tuple(best_cand),
-        vertex_ids=vid.numpy(),
-        yaw=best_yaw,
-        trans=trans.numpy(),
-        betas=best_betas.numpy(),
-        error=best_energy,
-        full_body=bool(full_body),
-        volume_ratio=ratio,
-        cluster_count=k,
-        candidates_tested=len(scored),
-        yaw_starts=starts,
-        ranking=ranking,
-        tilt=best_tilt.double().numpy(),
-    )
+
+    def as_match(entry) -> PartMatch:
+        energy, cand, cand_yaw, _, cand_betas = entry
+        sc = next(s for s in scored if s[1] == cand)
+        vid = torch.nonzero(torch.isin(dominant, torch.tensor(cand))).reshape(-1)
+        # yaw hypotheses of the candidate: each start's ICP optimum (the refined one replaces its own)
+        starts = [YawStart(start, float(sc[2][h]), float(sc[4][h]), sc[5][h].double().numpy())
+                  for h, start in enumerate(config.yaw_starts_deg)]
+        best_h = int(torch.argmin(sc[4]))
+        best_tilt = sc[5][best_h]
+        starts[best_h] = YawStart(starts[best_h].start_deg, cand_yaw, energy, best_tilt.double().numpy())
+        trans = full_translation(model, markers, visible, apply_root_offset(prior_root, best_tilt), prior_body_pose,
+                                 cand_betas, up, vid, torch.tensor(cand_yaw))
+        return PartMatch(
+            joints=tuple(cand), vertex_ids=vid.numpy(), yaw=cand_yaw, trans=trans.numpy(), betas=cand_betas.numpy(),
+            error=energy, full_body=bool(full_body), volume_ratio=ratio, cluster_count=k,
+            candidates_tested=len(scored), yaw_starts=starts, ranking=ranking, tilt=best_tilt.double().numpy(),
+            turn_mismatch=float(sc[6][best_h]),
+        )
+
+    chosen = as_match(refined[0])
+    if not full_body:
+        chosen.alternatives = [as_match(r) for r in refined[1:config.partial_alternatives]]
+    return chosen
 
 
 def _refine_candidate(model, mk, vis, root, body_pose, shape_prior, up, vid, yaw0, trans0, config, tilt):

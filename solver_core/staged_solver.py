@@ -283,40 +283,56 @@ def solve(
     if config.stop_after == "matching":
         return _finish(model, matched, None, diag, seconds, losses, stage_results, up)
 
-    # ---- Stage 1: yaw hypotheses, each through Stages 2-4 on a subsample of frames
-    hypotheses = _distinct_hypotheses(match, config.merge_hypotheses_deg)
+    # ---- Stage 1: yaw hypotheses, each through Stages 2-4 on a subsample of frames.  For a
+    # partial body the next-best part candidates come along with their own yaw hypotheses
+    # (beyond the paper: with the pose fixed to a noisy prior, matching alone often prefers a
+    # large torso surface over the arm the markers are on; after IK the true part fits best).
+    candidates = [match] + list(match.alternatives)
+    hypotheses = [(cand, yaw, tilt) for cand in candidates
+                  for yaw, tilt in _distinct_hypotheses(cand, config.merge_hypotheses_deg)[: None if cand is match else 2]]
     screen = _evenly_spaced(data_frames, config.screening_frames)
     screen_t = torch.as_tensor(screen)
     results = []
-    with timed("stage1", f"{len(hypotheses)} yaw hypotheses"):
-        for hyp_yaw, hyp_tilt in hypotheses:
+    with timed("stage1", f"{len(hypotheses)} hypotheses"):
+        for cand, hyp_yaw, hyp_tilt in hypotheses:
+            cand_chamfer_ids = None if cand.full_body else torch.as_tensor(cand.vertex_ids, dtype=torch.long)
+            cand_output_ids = None if cand.full_body else part_vertex_ids(model, cand.joints)
+            cand_betas = torch.as_tensor(cand.betas, dtype=torch.float32)
             yaw_t = torch.tensor(hyp_yaw)
             root_h = apply_root_offset(prior_root[screen_t], torch.as_tensor(hyp_tilt, dtype=torch.float32))
             trans = full_translation(
-                chamfer_model, mk[screen_t], vis[screen_t], root_h, prior_body[screen_t], betas0, up, match.vertex_ids, yaw_t,
+                chamfer_model, mk[screen_t], vis[screen_t], root_h, prior_body[screen_t], cand_betas, up, cand.vertex_ids, yaw_t,
             )
-            init = BodyParams(root_h.clone(), prior_body[screen_t].clone(), trans, betas0.clone(), yaw_t)
+            init = BodyParams(root_h.clone(), prior_body[screen_t].clone(), trans, cand_betas.clone(), yaw_t)
             p2, _, tilt = fit_pose(
                 chamfer_model, mk[screen_t], vis[screen_t], root_h, prior_body[screen_t], beta_prior, init, up,
-                part_chamfer_ids, config.pose_fitting, rate_hz=rate_hz, on_step=stepper("stage1"),
+                cand_chamfer_ids, config.pose_fitting, rate_hz=rate_hz, on_step=stepper("stage1"),
             )
             tilt = tilt @ torch.as_tensor(hyp_tilt, dtype=torch.float32)  # total tilt of this hypothesis
             tilted_root = apply_root_offset(prior_root[screen_t], tilt)
             att = find_marker_surface_points(
-                model, mk[screen_t], vis[screen_t], p2, up, part_output_ids, config.correspondence, vertex_faces
+                model, mk[screen_t], vis[screen_t], p2, up, cand_output_ids, config.correspondence, vertex_faces
             )
             p4, _ = solve_inverse_kinematics(
                 model, mk[screen_t], vis[screen_t], att, tilted_root, prior_body[screen_t], beta_prior, p2, up,
                 config.ik, FreeParameters(yaw=False), rate_hz=rate_hz, on_step=stepper("stage1"),
             )
             err = marker_fit_error(model, mk[screen_t], vis[screen_t], p4, att, up, config.ik.marker_offset_m)
-            results.append({"yaw": hyp_yaw, "fit_m": err, "stage2": p2, "stage2_yaw": float(p2.yaw), "tilt": tilt})
+            results.append({"yaw": hyp_yaw, "fit_m": err, "stage2": p2, "stage2_yaw": float(p2.yaw), "tilt": tilt,
+                            "match": cand})
     best = min(results, key=lambda r: r["fit_m"])
     diag["hypotheses"] = [
-        {"start_yaw_deg": math.degrees(r["yaw"]), "stage2_yaw_deg": math.degrees(r["stage2_yaw"]) % 360.0, "marker_fit_mm": 1000 * r["fit_m"]}
+        {"start_yaw_deg": math.degrees(r["yaw"]), "stage2_yaw_deg": math.degrees(r["stage2_yaw"]) % 360.0, "marker_fit_mm": 1000 * r["fit_m"],
+         "part_joints": [model.joint_names[j] for j in r["match"].joints] if not r["match"].full_body else "full body"}
         for r in results
     ]
     diag["chosen_yaw_deg"] = math.degrees(best["stage2_yaw"]) % 360.0
+    if best["match"] is not match:
+        match = best["match"]
+        diag["part_joints"] = [model.joint_names[j] for j in match.joints]
+        diag["part_chosen_by"] = "stage1"
+        part_chamfer_ids = torch.as_tensor(match.vertex_ids, dtype=torch.long)
+        part_output_ids = part_vertex_ids(model, match.joints)
 
     # ---- Stage 2 for the winner on more frames, warm-started from its screening result
     # (the tilt found while screening is kept in the prior's roots; Stage 2 may refine it)
