@@ -46,11 +46,12 @@ from threadpoolctl import threadpool_limits
 from uuomocap.solver_core import lbs
 from uuomocap.solver_core.body_params import (
     BodyParams,
+    FreeParameters,
     MarkerAttachment,
     interpolate_params,
     up_tensor,
 )
-from uuomocap.solver_core.inverse_kinematics import InverseKinematicsConfig
+from uuomocap.solver_core.inverse_kinematics import InverseKinematicsConfig, solve_inverse_kinematics
 from uuomocap.solver_core.marker_surface_correspondence import find_marker_surface_points
 from uuomocap.solver_core.optimization import LBFGSConfig
 from uuomocap.solver_core.prior_preparation import (
@@ -136,6 +137,15 @@ class WindowedSolverConfig:
     recheck_frames: int = 48
     # A re-checked point replaces the current one when its mean distance is this much smaller.
     recheck_improvement_m: float = 0.003
+    # Beyond the paper: the 2-4 s bootstrap sees few poses, so its shape and correspondence are
+    # worse than the offline solver's on the whole take.  Refined frames are kept in a reservoir
+    # spread evenly over the take (at most upgrade_frames; memory stays bounded), and each time
+    # the take has grown by upgrade_growth x since the last lock, Stages 3-4 (+ shape) run on the
+    # reservoir and replace the lock ("lock upgrade").  0 frames = never.
+    upgrade_frames: int = 96
+    upgrade_growth: float = 2.0
+    # Refuse an upgrade whose marker fit is worse than this times the current refined frames'.
+    upgrade_accept_ratio: float = 1.3
     # Ring sizes: recent frames kept for re-assignment (frames), priors kept (messages).
     history_frames: int = 64
     prior_buffer: int = 512
@@ -402,6 +412,10 @@ class WindowedSolver:
         self._slip_run = None
         self._degrade_run = 0
         self._since_recheck = 0
+        self._reservoir: list[_Frame] = []  # refined frames spread over the take (lock upgrade)
+        self._reservoir_stride = 1
+        self._reservoir_seen = 0
+        self._locked_span = 0  # frames the current lock was estimated from
 
     def add_prior(self, stamp_ns: int, global_orient, body_pose, betas, valid: bool = True, camera_frame: bool = True,
                   confidence: float = 1.0) -> None:
@@ -552,20 +566,12 @@ class WindowedSolver:
         res = solve(markers[sel], vis[sel], rate / step, self.up_axis, sub, shape, self.model, self.chamfer_model,
                     c.bootstrap_solver)
         old_yaw = self.yaw
-        self.betas = res.params.betas.detach().clone()
-        self.yaw = float(res.params.yaw)
-        # the bootstrap estimated the video camera's tilt; every later prior root gets the same tilt
-        # (the bootstrap window's own priors below are tilted here too)
-        self.camera_tilt = np.asarray(res.diagnostics.get("camera_tilt", np.eye(3)), dtype=np.float64)
-        self.face_ids = res.attachment.face_ids.numpy().astype(np.int64).copy()
-        self.bary = res.attachment.bary.double().numpy().copy()
-        diag = res.diagnostics
-        joints = tuple(self.model.joint_names.index(n) for n in diag.get("part_joints", [])) if not diag.get("full_body", True) else ()
-        self.allowed_ids = part_vertex_ids(self.model, joints) if joints else None
+        self.shape_prior = torch.as_tensor(np.asarray(shape), dtype=torch.float32)
+        self._reservoir, self._reservoir_stride, self._reservoir_seen = [], 1, 0
+        self._locked_span = len(frames)
         self.has_prior = has_prior
-        self.labels_version += 1
-        self._prepare_lock()
-        self.locked = True
+        self._adopt_lock(res)
+        diag = res.diagnostics
         self.stats["bootstraps"] += 1
         self.stats["rebootstraps"] += int(rebootstrap)
         self.last_bootstrap = {k: v for k, v in diag.items() if k not in ("cluster_labels",)}
@@ -614,6 +620,31 @@ class WindowedSolver:
             out.append(self._result(f, "estimate", lin["root_world"][i]))
         self.stats["bootstrap_seconds"].append(round(time.perf_counter() - t0, 3))
         return out
+
+    def _adopt_lock(self, res) -> None:
+        """Lock shape, yaw, camera tilt and correspondence from a staged-solver result."""
+        self.betas = res.params.betas.detach().clone()
+        self.yaw = float(res.params.yaw)
+        # the solver estimated the video camera's tilt; every later prior root gets the same tilt
+        new_tilt = np.asarray(res.diagnostics.get("camera_tilt", np.eye(3)), dtype=np.float64)
+        # priors already attached to frames in flight carry the old tilt: swap it for the new one
+        swap = new_tilt @ self.camera_tilt.T
+        if not np.allclose(swap, np.eye(3)):
+            seen: set[int] = set()
+            for f in list(self._pending) + list(self._context) + list(self._history):
+                if id(f) not in seen and f.prior is not None and self.has_prior:
+                    seen.add(id(f))
+                    f.prior = f.prior.copy()
+                    f.prior[:3] = rotation_vector(swap @ rotation_matrices(f.prior[:3]))
+        self.camera_tilt = new_tilt
+        self.face_ids = res.attachment.face_ids.numpy().astype(np.int64).copy()
+        self.bary = res.attachment.bary.double().numpy().copy()
+        diag = res.diagnostics
+        joints = tuple(self.model.joint_names.index(n) for n in diag.get("part_joints", [])) if not diag.get("full_body", True) else ()
+        self.allowed_ids = part_vertex_ids(self.model, joints) if joints else None
+        self.labels_version += 1
+        self._prepare_lock()
+        self.locked = True
 
     def _reyaw(self, root: np.ndarray, old: float, new: float) -> np.ndarray:
         up = self.up.double().numpy()
@@ -847,6 +878,7 @@ class WindowedSolver:
             for i, f in enumerate(done):
                 f.residual, f.joints = float(lin["residual"][i]), lin["joints"][i]
                 self._context.append(f)
+                self._keep_in_reservoir(f)
                 out.append(self._result(f, "refined", lin["root_world"][i]))
         self.timing["refine_s"] += time.perf_counter() - t0
         self.timing["refines"] += 1
@@ -981,11 +1013,75 @@ class WindowedSolver:
             bad_frames = min(self._degrade_run, len(self._history), self._boot.maxlen - 1)
             self._boot.extend(list(self._history)[len(self._history) - bad_frames:])
             self._degrade_run = 0
+        # lock upgrade once the take has grown enough since the lock was estimated
+        if (c.upgrade_frames > 0 and self._boot is None and self._reservoir_seen >= 8
+                and self._reservoir_seen >= c.upgrade_growth * self._locked_span):
+            self._upgrade_lock()
         # periodic re-check of every correspondence on the recent window
         self._since_recheck += 1
         if c.recheck_period_s > 0 and self._since_recheck >= c.recheck_period_s * rate:
             self._since_recheck = 0
             self._recheck()
+
+    def _keep_in_reservoir(self, f: _Frame) -> None:
+        """Keep every stride-th refined frame; when full, drop every other one and double the
+        stride: the reservoir covers the whole take evenly in bounded memory."""
+        c = self.config
+        if c.upgrade_frames <= 0:
+            return
+        if self._reservoir_seen % self._reservoir_stride == 0 and f.visible.sum() >= 4:
+            self._reservoir.append(f)
+            if len(self._reservoir) > c.upgrade_frames:
+                self._reservoir = self._reservoir[::2]
+                self._reservoir_stride *= 2
+        self._reservoir_seen += 1
+
+    def _upgrade_lock(self) -> None:
+        """The offline staged solver on the reservoir (frames spread over the take so far, with
+        their video priors); its shape, yaw, tilt and correspondence replace the lock when its
+        markers fit the reservoir better than the current lock's refined frames do."""
+        c = self.config
+        t0 = time.perf_counter()
+        self._locked_span = self._reservoir_seen
+        frames = list(self._reservoir)
+        if not self.has_prior:
+            return  # nothing to start Stage 2 from but our own estimates; keep the lock
+        markers = np.stack([f.markers for f in frames])
+        vis = np.stack([f.visible for f in frames])
+        # the frames' priors carry the current camera tilt: take it out, the solver finds its own
+        prior72 = np.stack([f.prior for f in frames])
+        untilt = self.camera_tilt.T
+        roots = np.stack([rotation_vector(untilt @ rotation_matrices(r)) for r in prior72[:, :3]])
+        nb = len(self.shape_prior)
+        prior = BodyPrior(roots, prior72[:, 3:].reshape(-1, 23, 3), np.tile(self.shape_prior.double().numpy(), (len(frames), 1)),
+                          np.ones(len(frames), dtype=bool), np.ones(len(frames)), np.array([f.stamp for f in frames], dtype=np.int64),
+                          "world")
+        # the reservoir's frames are not consecutive: no smoothness terms
+        cfg = replace(c.bootstrap_solver, ik=replace(c.bootstrap_solver.ik, smoothness_weight=0.0),
+                      pose_fitting=replace(c.bootstrap_solver.pose_fitting, smoothness_weight=0.0),
+                      screening_frames=min(c.bootstrap_solver.screening_frames, len(frames)),
+                      chamfer_frames=len(frames))
+        res = solve(markers, vis, self.rate_hz or 120.0, self.up_axis, prior, self.shape_prior.double().numpy()[:nb],
+                    self.model, self.chamfer_model, cfg)
+        current = float(np.mean([f.residual for f in frames]))
+        new = float(res.diagnostics.get("stage5_marker_fit_mm", res.diagnostics.get("stage4_marker_fit_mm", np.inf))) / 1000.0
+        self.stats["upgrades"] = self.stats.get("upgrades", 0) + 1
+        self.stats.setdefault("upgrade_seconds", []).append(round(time.perf_counter() - t0, 3))
+        self.stats.setdefault("upgrade_fit_mm", []).append((round(1000 * current, 2), round(1000 * new, 2)))
+        # the refined frames were fitted to the old lock frame by frame, so they fit their markers
+        # a little better than any whole-take solution does even when their lock is wrong: the
+        # upgrade is refused only when it fits clearly worse (a wrong yaw or part: 3-10x)
+        if not new <= c.upgrade_accept_ratio * current + 0.0005:
+            self.stats["upgrades_rejected"] = self.stats.get("upgrades_rejected", 0) + 1
+            return
+        old_yaw = self.yaw
+        self._adopt_lock(res)
+        # frames in flight keep their world pose under the new yaw
+        seen: set[int] = set()
+        for f in list(self._pending) + list(self._context) + list(self._history):
+            if id(f) not in seen:
+                seen.add(id(f))
+                f.theta[:3] = self._reyaw(f.theta[:3], old_yaw, self.yaw)
 
     def _recent(self, frames: int):
         hist = list(self._history)[-frames:]

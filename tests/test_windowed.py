@@ -124,7 +124,7 @@ def test_occlusion_gap_keeps_correspondence(streamed):
     s = _clone(streamed)
     # no periodic re-check here: it may legitimately move any marker to a better-fitting point,
     # and this test is about what the occlusion gap itself does to the correspondence
-    s.config = replace(s.config, recheck_period_s=0.0)
+    s.config = replace(s.config, recheck_period_s=0.0, upgrade_frames=0)
     md, rows = streamed["md"], streamed["rows"]
     n = md.positions.shape[0]
     order = np.concatenate([np.arange(n - 1, 0, -1), np.arange(n)])  # continue backwards: continuous motion
@@ -220,3 +220,41 @@ def test_degraded_fit_rebootstraps_while_estimating(streamed):
     baseline = np.mean([r.residual_m for r in streamed["results"] if r.kind == "estimate"])
     print(f"\nresidual after re-bootstrap {np.mean(residuals[-10:]) * 1e3:.1f} mm, first lock {baseline * 1e3:.1f} mm")
     assert np.mean(residuals[-10:]) < 0.015, residuals[-10:]
+
+
+def _attach_error_mm(solver, gt, model) -> float:
+    from uuomocap.solver_core.metrics import surface_points_rest
+
+    real = np.asarray(gt["marker_faces"]) >= 0
+    ok = real & (solver.face_ids >= 0)
+    t = surface_points_rest(model, gt["betas"], np.asarray(gt["marker_faces"])[ok], np.asarray(gt["marker_bary"])[ok])
+    p = surface_points_rest(model, gt["betas"], solver.face_ids[ok], solver.bary[ok])
+    return float(1000 * np.linalg.norm(p - t, axis=1).mean())
+
+
+def test_lock_upgrade_on_the_reservoir_improves_the_correspondence(streamed):
+    s = _clone(streamed)
+    assert 8 <= len(s._reservoir) <= s.config.upgrade_frames
+    frames = sorted(f.index for f in s._reservoir)
+    assert frames[0] < 10 and frames[-1] > 90  # spread over the whole take, not the recent frames
+    before = _attach_error_mm(s, streamed["gt"], streamed["model"])
+    version = s.labels_version
+    s._upgrade_lock()
+    assert s.stats["upgrades"] == 1 and "upgrades_rejected" not in s.stats, s.stats
+    after = _attach_error_mm(s, streamed["gt"], streamed["model"])
+    print(f"\nattachment error {before:.1f} -> {after:.1f} mm")
+    assert s.labels_version == version + 1
+    assert after < before, (before, after)
+
+
+def test_reservoir_stays_bounded_and_spread_over_a_long_take(streamed):
+    from uuomocap.solver_core.windowed_solver import _Frame
+
+    s = _clone(streamed)
+    s._reservoir, s._reservoir_stride, s._reservoir_seen = [], 1, 0
+    m = s.num_markers
+    for i in range(10_000):
+        s._keep_in_reservoir(_Frame(i, i, np.zeros((m, 3)), np.ones(m, dtype=bool)))
+    idx = [f.index for f in s._reservoir]
+    assert len(idx) <= s.config.upgrade_frames
+    assert idx[0] == 0 and idx[-1] > 9_000 and np.ptp(np.diff(idx)) == 0  # evenly spaced over the take
