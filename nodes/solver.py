@@ -33,6 +33,9 @@ class SolverNodeConfig:
     smoothness_weight: float = 0.01
     publish_estimates: bool = True
     threads: int = 1  # torch intra-op threads (1 = deterministic and leaves a core to the graph)
+    # lock upgrades (the staged solver on frames spread over the take, ~5 s each time the take
+    # doubles) on a worker thread: true for live streams (no stall), false keeps replays deterministic
+    upgrade_in_background: bool = False
 
     def __post_init__(self):
         if (self.bootstrap_s <= 0 or self.lag_frames < 0 or self.hop_frames < 1 or self.estimate_iterations < 1 or self.threads < 1
@@ -67,7 +70,8 @@ class Solver(Node):
         c = self.config
         self.model, self.chamfer_model = load_models(c.body_model)
         self.solver_config = replace(WindowedSolverConfig(), bootstrap_s=c.bootstrap_s, lag_frames=c.lag_frames, hop_frames=c.hop_frames,
-                                     estimate_iterations=c.estimate_iterations, smoothness_weight=c.smoothness_weight)
+                                     estimate_iterations=c.estimate_iterations, smoothness_weight=c.smoothness_weight,
+                                     upgrade_in_background=c.upgrade_in_background)
         self.solver = None
         self.rate_hz = 0.0
         self.log.info("solver: %s, bootstrap %.1fs, lag %d frames", c.body_model, c.bootstrap_s, c.lag_frames)

@@ -144,6 +144,9 @@ class WindowedSolverConfig:
     # reservoir and replace the lock ("lock upgrade").  0 frames = never.
     upgrade_frames: int = 96
     upgrade_growth: float = 2.0
+    # Run the upgrade on a worker thread while estimates go on (live streams: no ~5 s stall);
+    # False keeps replays deterministic (the result lands at a fixed frame).
+    upgrade_in_background: bool = False
     # Refuse an upgrade whose marker fit is worse than this times the current refined frames'.
     upgrade_accept_ratio: float = 1.3
     # Ring sizes: recent frames kept for re-assignment (frames), priors kept (messages).
@@ -416,6 +419,10 @@ class WindowedSolver:
         self._reservoir_stride = 1
         self._reservoir_seen = 0
         self._locked_span = 0  # frames the current lock was estimated from
+        # bumped by every (re-)bootstrap and reset: a background upgrade of an older lock is dropped
+        self._lock_generation = getattr(self, "_lock_generation", 0) + 1
+        self._upgrade_job = None  # (future, inputs) of a background upgrade
+        self._executor = getattr(self, "_executor", None)
 
     def add_prior(self, stamp_ns: int, global_orient, body_pose, betas, valid: bool = True, camera_frame: bool = True,
                   confidence: float = 1.0) -> None:
@@ -569,6 +576,7 @@ class WindowedSolver:
         self.shape_prior = torch.as_tensor(np.asarray(shape), dtype=torch.float32)
         self._reservoir, self._reservoir_stride, self._reservoir_seen = [], 1, 0
         self._locked_span = len(frames)
+        self._lock_generation += 1
         self.has_prior = has_prior
         self._adopt_lock(res)
         diag = res.diagnostics
@@ -1014,6 +1022,7 @@ class WindowedSolver:
             self._boot.extend(list(self._history)[len(self._history) - bad_frames:])
             self._degrade_run = 0
         # lock upgrade once the take has grown enough since the lock was estimated
+        self._poll_upgrade()
         if (c.upgrade_frames > 0 and self._boot is None and self._reservoir_seen >= 8
                 and self._reservoir_seen >= c.upgrade_growth * self._locked_span):
             self._upgrade_lock()
@@ -1037,41 +1046,74 @@ class WindowedSolver:
         self._reservoir_seen += 1
 
     def _upgrade_lock(self) -> None:
-        """The offline staged solver on the reservoir (frames spread over the take so far, with
-        their video priors); its shape, yaw, tilt and correspondence replace the lock when its
-        markers fit the reservoir better than the current lock's refined frames do."""
+        """Start a lock upgrade: the offline staged solver on the reservoir (frames spread over the
+        take so far, with their video priors).  Synchronous, or on a worker thread when
+        ``upgrade_in_background`` (the estimates go on meanwhile; the result is adopted at the
+        first frame after it is ready)."""
         c = self.config
-        t0 = time.perf_counter()
         self._locked_span = self._reservoir_seen
+        if not self.has_prior or self._upgrade_job is not None:
+            return  # nothing to start Stage 2 from but our own estimates / one already running
+        job = self._upgrade_inputs()
+        if c.upgrade_in_background:
+            from concurrent.futures import ThreadPoolExecutor
+
+            if self._executor is None:
+                self._executor = ThreadPoolExecutor(1, thread_name_prefix="lock-upgrade")
+            self._upgrade_job = (self._executor.submit(self._solve_upgrade, job), job)
+        else:
+            self._finish_upgrade(self._solve_upgrade(job), job)
+
+    def _poll_upgrade(self) -> None:
+        if self._upgrade_job is not None and self._upgrade_job[0].done():
+            future, job = self._upgrade_job
+            self._upgrade_job = None
+            try:
+                res = future.result()
+            except (ValueError, RuntimeError) as exc:  # e.g. no usable frame: keep the current lock
+                self.stats["upgrade_errors"] = self.stats.get("upgrade_errors", 0) + 1
+                self.stats["last_upgrade_error"] = str(exc)
+                return
+            self._finish_upgrade(res, job)
+
+    def _upgrade_inputs(self) -> dict:
+        """Copies of everything the upgrade solve reads (the stream goes on while it runs)."""
         frames = list(self._reservoir)
-        if not self.has_prior:
-            return  # nothing to start Stage 2 from but our own estimates; keep the lock
-        markers = np.stack([f.markers for f in frames])
-        vis = np.stack([f.visible for f in frames])
-        # the frames' priors carry the current camera tilt: take it out, the solver finds its own
         prior72 = np.stack([f.prior for f in frames])
+        # the frames' priors carry the current camera tilt: take it out, the solver finds its own
         untilt = self.camera_tilt.T
         roots = np.stack([rotation_vector(untilt @ rotation_matrices(r)) for r in prior72[:, :3]])
-        nb = len(self.shape_prior)
-        prior = BodyPrior(roots, prior72[:, 3:].reshape(-1, 23, 3), np.tile(self.shape_prior.double().numpy(), (len(frames), 1)),
+        shape = self.shape_prior.double().numpy()
+        prior = BodyPrior(roots, prior72[:, 3:].reshape(-1, 23, 3).copy(), np.tile(shape, (len(frames), 1)),
                           np.ones(len(frames), dtype=bool), np.ones(len(frames)), np.array([f.stamp for f in frames], dtype=np.int64),
                           "world")
+        return {"markers": np.stack([f.markers for f in frames]), "visible": np.stack([f.visible for f in frames]),
+                "prior": prior, "shape": shape, "current_fit_m": float(np.mean([f.residual for f in frames])),
+                "generation": self._lock_generation, "t0": time.perf_counter()}
+
+    def _solve_upgrade(self, job: dict):
+        c = self.config
         # the reservoir's frames are not consecutive: no smoothness terms
         cfg = replace(c.bootstrap_solver, ik=replace(c.bootstrap_solver.ik, smoothness_weight=0.0),
                       pose_fitting=replace(c.bootstrap_solver.pose_fitting, smoothness_weight=0.0),
-                      screening_frames=min(c.bootstrap_solver.screening_frames, len(frames)),
-                      chamfer_frames=len(frames))
-        res = solve(markers, vis, self.rate_hz or 120.0, self.up_axis, prior, self.shape_prior.double().numpy()[:nb],
-                    self.model, self.chamfer_model, cfg)
-        current = float(np.mean([f.residual for f in frames]))
+                      screening_frames=min(c.bootstrap_solver.screening_frames, len(job["markers"])),
+                      chamfer_frames=len(job["markers"]))
+        return solve(job["markers"], job["visible"], self.rate_hz or 120.0, self.up_axis, job["prior"], job["shape"],
+                     self.model, self.chamfer_model, cfg)
+
+    def _finish_upgrade(self, res, job: dict) -> None:
+        """Adopt the upgrade's shape, yaw, tilt and correspondence unless it fits clearly worse, or
+        the lock changed meanwhile (a re-bootstrap)."""
+        c = self.config
+        current = job["current_fit_m"]
         new = float(res.diagnostics.get("stage5_marker_fit_mm", res.diagnostics.get("stage4_marker_fit_mm", np.inf))) / 1000.0
         self.stats["upgrades"] = self.stats.get("upgrades", 0) + 1
-        self.stats.setdefault("upgrade_seconds", []).append(round(time.perf_counter() - t0, 3))
+        self.stats.setdefault("upgrade_seconds", []).append(round(time.perf_counter() - job["t0"], 3))
         self.stats.setdefault("upgrade_fit_mm", []).append((round(1000 * current, 2), round(1000 * new, 2)))
         # the refined frames were fitted to the old lock frame by frame, so they fit their markers
         # a little better than any whole-take solution does even when their lock is wrong: the
         # upgrade is refused only when it fits clearly worse (a wrong yaw or part: 3-10x)
-        if not new <= c.upgrade_accept_ratio * current + 0.0005:
+        if job["generation"] != self._lock_generation or not new <= c.upgrade_accept_ratio * current + 0.0005:
             self.stats["upgrades_rejected"] = self.stats.get("upgrades_rejected", 0) + 1
             return
         old_yaw = self.yaw

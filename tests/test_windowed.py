@@ -245,6 +245,23 @@ def test_lock_upgrade_on_the_reservoir_improves_the_correspondence(streamed):
     print(f"\nattachment error {before:.1f} -> {after:.1f} mm")
     assert s.labels_version == version + 1
     assert after < before, (before, after)
+    # on a worker thread (live streams): same result, adopted at the first frame after it is ready
+    b = _clone(streamed)
+    b.config = replace(b.config, upgrade_in_background=True)
+    b._upgrade_lock()
+    assert b._upgrade_job is not None and b.labels_version == version
+    b._upgrade_job[0].result(timeout=120)
+    b._poll_upgrade()
+    assert b._upgrade_job is None and b.labels_version == version + 1
+    np.testing.assert_array_equal(b.face_ids, s.face_ids)
+    # a re-bootstrap meanwhile makes a running upgrade stale: dropped, not adopted
+    c = _clone(streamed)
+    c.config = replace(c.config, upgrade_in_background=True)
+    c._upgrade_lock()
+    c._lock_generation += 1
+    c._upgrade_job[0].result(timeout=120)
+    c._poll_upgrade()
+    assert c.stats["upgrades_rejected"] == 1 and c.labels_version == version
 
 
 def test_reservoir_stays_bounded_and_spread_over_a_long_take(streamed):
