@@ -98,6 +98,12 @@ class WindowedSolverConfig:
     estimate_iterations: int = 2
     # Warm start the estimate by constant-velocity extrapolation of the previous two frames.
     extrapolate: bool = False
+    # Beyond the paper: Cauchy IRLS scale (metres) of the per-frame solves.  A few markers on a
+    # wrong surface point (the bootstrap saw the arms down; now they go up) would drag the whole
+    # limb with least squares, every marker on it then looks slipped and the fit collapses; with
+    # the robust kernel the pose follows the majority and only the wrong markers stand out (and
+    # are re-assigned as slipped).  None = plain least squares.
+    robust_scale_m: float | None = 0.02
     # Levenberg-Marquardt damping (relative to the diagonal of the normal equations).
     damping: float = 1e-3
     # Issue 6: fixed lag (frames) after which a frame is final ("refined").
@@ -780,9 +786,10 @@ class WindowedSolver:
             lin = self._linearize(theta, trans, markers, vis)
             w = lin["w"]
             wm = c.ik.marker_weight / np.maximum(w.sum(1), 1.0) / unit**2  # (B,)
-            J = lin["J"] * w[..., None, None]
+            root_w = self._robust_root_weights(lin)
+            J = lin["J"] * (w * root_w)[..., None, None]
             Jf = J.reshape(J.shape[0], -1, N_PARAMS)
-            rf = lin["resid"].reshape(J.shape[0], -1)
+            rf = (lin["resid"] * root_w[..., None]).reshape(J.shape[0], -1)
             Jt = np.ascontiguousarray(Jf.transpose(0, 2, 1))  # numpy's stacked matmul is BLAS only on contiguous operands
             H = (Jt @ Jf) * wm[:, None, None]
             g = (Jt @ rf[..., None])[..., 0] * wm[:, None]
@@ -796,6 +803,15 @@ class WindowedSolver:
             trans += step[:, N_POSE:]
             theta[:, :3] = wrap_rotation_vector(theta[:, :3])
         return theta, trans
+
+    def _robust_root_weights(self, lin: dict) -> np.ndarray:
+        """(B,Ma) square roots of the Cauchy IRLS weights 1 / (1 + (d / scale)^2) of the markers'
+        current distances d (1 everywhere when ``robust_scale_m`` is None)."""
+        scale = self.config.robust_scale_m
+        d = np.linalg.norm(lin["resid"], axis=-1)
+        if scale is None:
+            return np.ones_like(d)
+        return 1.0 / np.sqrt(1.0 + (d / scale) ** 2)
 
     # ------------------------------------------------------------------ per frame
     def _prior_at(self, stamp: int) -> np.ndarray | None:
@@ -905,8 +921,9 @@ class WindowedSolver:
         lin = self._linearize(theta, trans, markers, vis, joint_jacobian=smooth)
         w = lin["w"]
         wm = c.ik.marker_weight / max(w.sum(), 1.0) / unit**2
-        J = (lin["J"] * w[..., None, None]).reshape(T, -1, N_PARAMS)[n_fixed:]
-        rf = lin["resid"].reshape(T, -1)[n_fixed:]
+        root_w = self._robust_root_weights(lin)
+        J = (lin["J"] * (w * root_w)[..., None, None]).reshape(T, -1, N_PARAMS)[n_fixed:]
+        rf = (lin["resid"] * root_w[..., None]).reshape(T, -1)[n_fixed:]
         Jt = np.ascontiguousarray(J.transpose(0, 2, 1))
         Hd = (Jt @ J) * wm
         g = (Jt @ rf[..., None])[..., 0] * wm
