@@ -275,3 +275,30 @@ def test_reservoir_stays_bounded_and_spread_over_a_long_take(streamed):
     idx = [f.index for f in s._reservoir]
     assert len(idx) <= s.config.upgrade_frames
     assert idx[0] == 0 and idx[-1] > 9_000 and np.ptp(np.diff(idx)) == 0  # evenly spaced over the take
+
+
+def test_robust_kernel_keeps_the_pose_when_a_few_markers_are_locked_wrong(streamed):
+    """Three markers moved to the far side of the body: least squares drags the pose towards them,
+    the Cauchy kernel follows the other markers (and leaves the three standing out as slipped)."""
+    md, gt = streamed["md"], streamed["gt"]
+    errors = {}
+    for scale in (None, 0.01):
+        s = _clone(streamed)
+        s.config = replace(s.config, robust_scale_m=scale, recheck_period_s=0.0, upgrade_frames=0, slip_frames=10_000)
+        wrong = np.flatnonzero(s.face_ids >= 0)[:3]
+        far = int(np.argmax(np.linalg.norm(s.model.v_template.numpy()[s.model.faces.numpy()].mean(1)
+                                           - s.model.v_template.numpy()[s.model.faces.numpy()[s.face_ids[wrong[0]]]].mean(0), axis=1)))
+        s.face_ids[wrong] = far
+        s._prepare_lock()
+        frames = [len(s._history) - 1 - k for k in range(10)]
+        hist = list(s._history)
+        theta = np.stack([hist[i].theta for i in frames])
+        trans = np.stack([hist[i].trans for i in frames])
+        theta, trans = s._gauss_newton(theta, trans, np.stack([hist[i].markers for i in frames]),
+                                       np.stack([hist[i].visible for i in frames]), np.stack([hist[i].prior for i in frames]), 5)
+        lin = s._linearize(theta, trans, np.stack([hist[i].markers for i in frames]), np.stack([hist[i].visible for i in frames]),
+                           jacobian=False)
+        gj = np.asarray(gt["joints"])[[hist[i].index for i in frames]]
+        errors[scale] = float(np.linalg.norm(lin["joints"][:, :22] - gj[:, :22], axis=-1).mean() * 1000)
+    print(f"\nMPJPE with 3 wrong markers: least squares {errors[None]:.1f} mm, Cauchy {errors[0.01]:.1f} mm")
+    assert errors[0.01] < 0.7 * errors[None], errors
