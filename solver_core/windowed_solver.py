@@ -1074,6 +1074,7 @@ class WindowedSolver:
         if not self.has_prior or self._upgrade_job is not None:
             return  # nothing to start Stage 2 from but our own estimates / one already running
         job = self._upgrade_inputs()
+        self.stats["upgrades_started"] = self.stats.get("upgrades_started", 0) + 1
         if c.upgrade_in_background:
             from concurrent.futures import ThreadPoolExecutor
 

@@ -89,7 +89,7 @@ def bench_session(sdir: Path, offline: bool, bar) -> dict:
         "refined_latency_ms": {"lag": lag_ms, "p50": _pct(run.latency_refined_ms, 50), "p95": _pct(run.latency_refined_ms, 95),
                                "p95_minus_lag": _pct(run.latency_refined_ms, 95) - lag_ms},
         "rebootstraps": run.stats.get("rebootstraps", 0),
-        "lock_upgrades": run.stats.get("upgrades", 0), "lock_upgrade_s": run.stats.get("upgrade_seconds", []),
+        "lock_upgrades_started": run.stats.get("upgrades_started", 0), "lock_upgrades": run.stats.get("upgrades", 0), "lock_upgrade_s": run.stats.get("upgrade_seconds", []),
     }
     if gt is not None:
         res.update(estimate_metrics(run, gt, "estimate"))
@@ -202,9 +202,9 @@ def run(args) -> int:
     lines.append(f"accuracy: refined MPJPE {s['refined_mpjpe']:.1f} mm / MPJVE {s['refined_mpjve']:.1f} mm/s; estimate "
                  f"{s['estimate_mpjpe']:.1f} / {s['estimate_mpjve']:.1f}; offline {s['offline_mpjpe']:.1f} / {s['offline_mpjve']:.1f} "
                  f"(offline solve {s['offline_s']:.1f} s per session)")
-    ups = [(Path(r["session"]).name[:16], r["lock_upgrades"], r["lock_upgrade_s"]) for r in rows]
-    lines.append("lock upgrades (worker thread): " + "; ".join(f"{n} {k} in {', '.join(f'{x:.1f}' for x in t) or '-'} s"
-                                                       for n, k, t in ups))
+    ups = [(Path(r["session"]).name[:16], r["lock_upgrades_started"], r["lock_upgrades"], r["lock_upgrade_s"]) for r in rows]
+    lines.append("lock upgrades (worker thread; one still running when the take ends is dropped): " + "; ".join(
+        f"{n} {k0} started, {k} adopted or refused in {', '.join(f'{x:.1f}' for x in t) or '-'} s" for n, k0, k, t in ups))
     if long:
         for name, m in long["marks"].items():
             lines.append(f"long take {name}: peak RSS {m['peak_rss_mib']:.1f} MiB, buffers {m['buffers']}, wall {m['wall_s']:.0f} s")
