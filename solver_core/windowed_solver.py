@@ -520,7 +520,8 @@ class WindowedSolver:
     def buffer_sizes(self) -> dict[str, int]:
         """Lengths of every internal buffer (the memory-bound test watches these)."""
         return {"priors": len(self._priors), "pending": len(self._pending), "context": len(self._context),
-                "history": len(self._history), "bootstrap": len(self._boot) if self._boot is not None else 0}
+                "history": len(self._history), "bootstrap": len(self._boot) if self._boot is not None else 0,
+                "reservoir": len(self._reservoir)}
 
     # ------------------------------------------------------------------ bootstrap
     def _boot_frames_needed(self) -> int:
@@ -1113,11 +1114,12 @@ class WindowedSolver:
 
     def _solve_upgrade(self, job: dict):
         c = self.config
-        # the reservoir's frames are not consecutive: no smoothness terms
+        # the reservoir's frames are not consecutive: no smoothness terms, and every stage on every
+        # frame (the staged solver interpolates between its screening frames, which only works for
+        # neighbouring frames: on a reservoir spread over 40 s the fits degraded to 11-90 mm)
         cfg = replace(c.bootstrap_solver, ik=replace(c.bootstrap_solver.ik, smoothness_weight=0.0),
                       pose_fitting=replace(c.bootstrap_solver.pose_fitting, smoothness_weight=0.0),
-                      screening_frames=min(c.bootstrap_solver.screening_frames, len(job["markers"])),
-                      chamfer_frames=len(job["markers"]))
+                      screening_frames=len(job["markers"]), chamfer_frames=len(job["markers"]))
         return solve(job["markers"], job["visible"], self.rate_hz or 120.0, self.up_axis, job["prior"], job["shape"],
                      self.model, self.chamfer_model, cfg)
 
