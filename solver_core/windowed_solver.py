@@ -157,6 +157,8 @@ class WindowedSolverConfig:
     # Run the upgrade on a worker thread while estimates go on (live streams: no ~5 s stall);
     # False keeps replays deterministic (the result lands at a fixed frame).
     upgrade_in_background: bool = False
+    # The staged solver of the upgrades (None = bootstrap_solver).
+    upgrade_solver: SolverConfig | None = None
     # Longest time gap (s) the upgrade's Stage 2 may interpolate its start across (see _solve_upgrade).
     upgrade_max_interpolation_s: float = 0.35
     # Refuse an upgrade whose marker fit is worse than this times the current refined frames'.
@@ -1124,11 +1126,12 @@ class WindowedSolver:
         # 11-90 mm, so then every frame is screened (slower, and on short spans it fitted worse:
         # 5.8 vs 3.5 mm on a 5 s walk, hence not always).
         n = len(job["markers"])
-        screening = min(c.bootstrap_solver.screening_frames, n)
+        base = c.upgrade_solver or c.bootstrap_solver
+        screening = min(base.screening_frames, n)
         if (n / max(screening, 1)) * job["stride"] / (self.rate_hz or 120.0) > c.upgrade_max_interpolation_s:
             screening = n
-        cfg = replace(c.bootstrap_solver, ik=replace(c.bootstrap_solver.ik, smoothness_weight=0.0),
-                      pose_fitting=replace(c.bootstrap_solver.pose_fitting, smoothness_weight=0.0),
+        cfg = replace(base, ik=replace(base.ik, smoothness_weight=0.0),
+                      pose_fitting=replace(base.pose_fitting, smoothness_weight=0.0),
                       screening_frames=screening, chamfer_frames=n)
         return solve(job["markers"], job["visible"], self.rate_hz or 120.0, self.up_axis, job["prior"], job["shape"],
                      self.model, self.chamfer_model, cfg)
