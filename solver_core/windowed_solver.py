@@ -37,6 +37,7 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
+from itertools import chain
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -605,11 +606,7 @@ class WindowedSolver:
             # Frames still in flight: re-express them in the new yaw (their world pose is unchanged;
             # a frame sits in several rings, so once each), take the bootstrap's solution where the
             # window covers them, then settle them under the new lock (batched Gauss-Newton).
-            seen: set[int] = set()
-            for f in list(self._pending) + list(self._context) + list(self._history):
-                if id(f) not in seen:
-                    seen.add(id(f))
-                    f.theta[:3] = self._reyaw(f.theta[:3], old_yaw, self.yaw)
+            self._reyaw_in_flight(old_yaw)
             full = interpolate_params(res.params, sel, np.arange(len(frames)))
             where = {id(f): i for i, f in enumerate(frames)}
             for f in self._pending:
@@ -652,13 +649,10 @@ class WindowedSolver:
         new_tilt = np.asarray(res.diagnostics.get("camera_tilt", np.eye(3)), dtype=np.float64)
         # priors already attached to frames in flight carry the old tilt: swap it for the new one
         swap = new_tilt @ self.camera_tilt.T
-        if not np.allclose(swap, np.eye(3)):
-            seen: set[int] = set()
-            for f in list(self._pending) + list(self._context) + list(self._history):
-                if id(f) not in seen and f.prior is not None and self.has_prior:
-                    seen.add(id(f))
-                    f.prior = f.prior.copy()
-                    f.prior[:3] = rotation_vector(swap @ rotation_matrices(f.prior[:3]))
+        if self.has_prior and not np.allclose(swap, np.eye(3)):
+            for f in self._frames_in_flight():
+                f.prior = f.prior.copy()
+                f.prior[:3] = rotation_vector(swap @ rotation_matrices(f.prior[:3]))
         self.camera_tilt = new_tilt
         self.face_ids = res.attachment.face_ids.numpy().astype(np.int64).copy()
         self.bary = res.attachment.bary.double().numpy().copy()
@@ -668,6 +662,20 @@ class WindowedSolver:
         self.labels_version += 1
         self._prepare_lock()
         self.locked = True
+
+    def _frames_in_flight(self):
+        """Every frame still held (pending, context, history, reservoir), once each: a frame sits
+        in several rings."""
+        seen: set[int] = set()
+        for f in chain(self._pending, self._context, self._history, self._reservoir):
+            if id(f) not in seen:
+                seen.add(id(f))
+                yield f
+
+    def _reyaw_in_flight(self, old_yaw: float) -> None:
+        """Re-express held frames' roots under the new yaw (their world pose is unchanged)."""
+        for f in self._frames_in_flight():
+            f.theta[:3] = self._reyaw(f.theta[:3], old_yaw, self.yaw)
 
     def _reyaw(self, root: np.ndarray, old: float, new: float) -> np.ndarray:
         up = self.up.double().numpy()
@@ -1153,12 +1161,7 @@ class WindowedSolver:
             return
         old_yaw = self.yaw
         self._adopt_lock(res)
-        # frames in flight keep their world pose under the new yaw
-        seen: set[int] = set()
-        for f in list(self._pending) + list(self._context) + list(self._history):
-            if id(f) not in seen:
-                seen.add(id(f))
-                f.theta[:3] = self._reyaw(f.theta[:3], old_yaw, self.yaw)
+        self._reyaw_in_flight(old_yaw)
 
     def _recent(self, frames: int):
         hist = list(self._history)[-frames:]
