@@ -153,6 +153,7 @@ class Node:
     TIMER_S: ClassVar[float | None] = None  # period of on_timer(), None = never
     DRAIN_ON_STOP_S: ClassVar[float] = 0.0  # sinks: keep handling until the input is idle this long
     DRAIN_MAX_S: ClassVar[float] = 2.0  # ... but never longer than this
+    FINISH_LINGER_MS: ClassVar[int] = 2000  # how long a node that finished by itself lets its last messages leave
     STOP_TIMEOUT_S: ClassVar[int] = 10  # after a stop request, SIGALRM ends the process
     ACK_REPEAT_S: ClassVar[float] = 0.2  # period of re-sending the latest acks (lockstep)
 
@@ -404,9 +405,13 @@ class Node:
         self._prefix_port = [(p.topic.rstrip("*"), k) for k, p in self.inputs.items() if p.is_pattern]
 
     def _close(self) -> None:
-        for s in (self._sub, self._pub):
-            if s is not None:
-                s.close()
+        if self._sub is not None:
+            self._sub.close()
+        if self._pub is not None:
+            # A node that finished by itself (a replay at its end) may still have messages queued in
+            # the socket: closing with linger 0 dropped them (a lockstep replay then waited forever
+            # for the credit of a prior that never left).  Stopped by a signal: no wait.
+            self._pub.close(0 if self._stop else self.FINISH_LINGER_MS)
         self._pub = self._sub = None
 
     def _port_for(self, topic: str) -> str | None:

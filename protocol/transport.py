@@ -8,7 +8,8 @@ subscriptions by themselves.
 
 Endpoints are ``ipc://`` under a per-graph runtime directory on one machine
 (default) or ``tcp://`` across a studio network (bound on 127.0.0.1 unless the
-launch file says otherwise). Every socket closes with ``linger=0``.
+launch file says otherwise). Every socket closes with ``linger=0``, except the publisher of a node
+that finished by itself, which lets its last queued messages leave (``Node.FINISH_LINGER_MS``).
 
 Queue policy per subscription:
   keep_all  every message in order (recorder); large high-water marks.
@@ -248,8 +249,10 @@ class Publisher:
         """Send frames that were already encoded (fuzzing, relays of foreign traffic)."""
         self._sock.send_multipart(frames, copy=False)
 
-    def close(self) -> None:
-        self._sock.close(0)
+    def close(self, linger_ms: int = 0) -> None:
+        """Close; ``linger_ms`` > 0 first lets already-sent messages leave the socket for up to
+        that long (a node that finished on its own: its last messages must still arrive)."""
+        self._sock.close(linger_ms)
 
 
 # ------------------------------------------------------------------------------------------
