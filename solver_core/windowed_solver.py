@@ -151,8 +151,8 @@ class WindowedSolverConfig:
     # Beyond the paper: the 2-4 s bootstrap sees few poses, so its shape and correspondence are
     # worse than the offline solver's on the whole take.  Refined frames are kept in a reservoir
     # spread evenly over the take (at most upgrade_frames; memory stays bounded), and each time
-    # the take has grown by upgrade_growth x since the last lock, Stages 3-4 (+ shape) run on the
-    # reservoir and replace the lock ("lock upgrade").  0 frames = never.
+    # the take has grown by upgrade_growth x since the last lock, the staged solver runs on the
+    # reservoir and may replace the lock ("lock upgrade", see _finish_upgrade).  0 frames = never.
     upgrade_frames: int = 96
     upgrade_growth: float = 2.0
     # Run the upgrade on a worker thread while estimates go on (live streams: no ~5 s stall);
@@ -647,25 +647,33 @@ class WindowedSolver:
         self.stats["bootstrap_seconds"].append(round(time.perf_counter() - t0, 3))
         return out
 
+    _LOCK_FIELDS = ("face_ids", "bary", "betas", "yaw", "camera_tilt", "allowed_ids")
+
+    def _lock_from(self, res) -> tuple:
+        """The lock (``_LOCK_FIELDS``) a staged-solver result implies."""
+        diag = res.diagnostics
+        joints = tuple(self.model.joint_names.index(n) for n in diag.get("part_joints", [])) if not diag.get("full_body", True) else ()
+        return (res.attachment.face_ids.numpy().astype(np.int64).copy(), res.attachment.bary.double().numpy().copy(),
+                res.params.betas.detach().clone(), float(res.params.yaw),
+                np.asarray(diag.get("camera_tilt", np.eye(3)), dtype=np.float64),
+                part_vertex_ids(self.model, joints) if joints else None)
+
+    def _set_lock(self, lock: tuple) -> None:
+        for name, value in zip(self._LOCK_FIELDS, lock):
+            setattr(self, name, value)
+        self._prepare_lock()
+
     def _adopt_lock(self, res) -> None:
         """Lock shape, yaw, camera tilt and correspondence from a staged-solver result."""
-        self.betas = res.params.betas.detach().clone()
-        self.yaw = float(res.params.yaw)
-        # the solver estimated the video camera's tilt; every later prior root gets the same tilt
-        new_tilt = np.asarray(res.diagnostics.get("camera_tilt", np.eye(3)), dtype=np.float64)
-        # priors already attached to frames in flight carry the old tilt: swap it for the new one
-        swap = new_tilt @ self.camera_tilt.T
+        lock = self._lock_from(res)
+        # the solver estimated the video camera's tilt; every later prior root gets the same tilt,
+        # and priors already attached to frames in flight carry the old one: swap it
+        swap = lock[4] @ self.camera_tilt.T
         if self.has_prior and not np.allclose(swap, np.eye(3)):
             for f in self._frames_in_flight():
                 f.prior = self._swap_prior_tilt(f.prior[None], swap)[0]
-        self.camera_tilt = new_tilt
-        self.face_ids = res.attachment.face_ids.numpy().astype(np.int64).copy()
-        self.bary = res.attachment.bary.double().numpy().copy()
-        diag = res.diagnostics
-        joints = tuple(self.model.joint_names.index(n) for n in diag.get("part_joints", [])) if not diag.get("full_body", True) else ()
-        self.allowed_ids = part_vertex_ids(self.model, joints) if joints else None
+        self._set_lock(lock)
         self.labels_version += 1
-        self._prepare_lock()
         self.locked = True
 
     def _frames_in_flight(self):
@@ -845,11 +853,7 @@ class WindowedSolver:
 
     def _tilt_priors(self, prior72: np.ndarray) -> np.ndarray:
         """(B,72) priors with the camera tilt found at bootstrap applied to their roots."""
-        out = np.array(prior72, dtype=np.float64)
-        if not np.allclose(self.camera_tilt, np.eye(3)):
-            for i in range(len(out)):
-                out[i, :3] = rotation_vector(self.camera_tilt @ rotation_matrices(out[i, :3]))
-        return out
+        return self._swap_prior_tilt(prior72, self.camera_tilt)
 
     def _estimate(self, frame: _Frame, iterations: int) -> WindowResult:
         c = self.config
@@ -1119,12 +1123,10 @@ class WindowedSolver:
     def _upgrade_inputs(self) -> dict:
         """Copies of everything the upgrade solve reads (the stream goes on while it runs)."""
         frames = list(self._reservoir)
-        prior72 = np.stack([f.prior for f in frames])
         # the frames' priors carry the current camera tilt: take it out, the solver finds its own
-        untilt = self.camera_tilt.T
-        roots = np.stack([rotation_vector(untilt @ rotation_matrices(r)) for r in prior72[:, :3]])
+        prior72 = self._swap_prior_tilt(np.stack([f.prior for f in frames]), self.camera_tilt.T)
         shape = self.shape_prior.double().numpy()
-        prior = BodyPrior(roots, prior72[:, 3:].reshape(-1, 23, 3).copy(), np.tile(shape, (len(frames), 1)),
+        prior = BodyPrior(prior72[:, :3].copy(), prior72[:, 3:].reshape(-1, 23, 3).copy(), np.tile(shape, (len(frames), 1)),
                           np.ones(len(frames), dtype=bool), np.ones(len(frames)), np.array([f.stamp for f in frames], dtype=np.int64),
                           "world")
         return {"markers": np.stack([f.markers for f in frames]), "visible": np.stack([f.visible for f in frames]),
@@ -1168,23 +1170,18 @@ class WindowedSolver:
         trans = np.stack([f.trans for f in frames])
         prior = np.stack([f.prior for f in frames])
         current = self._reservoir_fit(job, theta, trans, prior)
-        old = (self.face_ids, self.bary, self.betas, self.yaw, self.camera_tilt, self.allowed_ids)
-        new_tilt = np.asarray(res.diagnostics.get("camera_tilt", np.eye(3)), dtype=np.float64)
-        self.face_ids = res.attachment.face_ids.numpy().astype(np.int64).copy()
-        self.bary = res.attachment.bary.double().numpy().copy()
-        self.betas = res.params.betas.detach().clone()
-        self.yaw = float(res.params.yaw)
-        self._prepare_lock()
+        old = tuple(getattr(self, name) for name in self._LOCK_FIELDS)
+        new = self._lock_from(res)
+        self._set_lock(new)
         # same world poses and priors, expressed under the candidate's yaw and camera tilt
         theta_new = theta.copy()
         theta_new[:, :3] = np.stack([self._reyaw(r, old[3], self.yaw) for r in theta[:, :3]])
-        prior_new = self._swap_prior_tilt(prior, new_tilt @ old[4].T)
+        prior_new = self._swap_prior_tilt(prior, new[4] @ old[4].T)
         candidate = self._reservoir_fit(job, theta_new, trans, prior_new)
         self.stats.setdefault("upgrade_fit_mm", []).append((round(1000 * current, 2), round(1000 * candidate, 2)))
-        self.face_ids, self.bary, self.betas, self.yaw, self.camera_tilt, self.allowed_ids = old
+        self._set_lock(old)
         if not candidate < c.upgrade_accept_ratio * current:
             self.stats["upgrades_rejected"] = self.stats.get("upgrades_rejected", 0) + 1
-            self._prepare_lock()
             return
         old_yaw = self.yaw
         self._adopt_lock(res)
