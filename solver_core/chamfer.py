@@ -75,9 +75,12 @@ def unidirectional_chamfer(
 
 @torch.no_grad()
 def mean_distance_to_targets(
-    points: torch.Tensor, visible: torch.Tensor, targets: torch.Tensor, max_elements: int = DEFAULT_MAX_ELEMENTS
+    points: torch.Tensor, visible: torch.Tensor, targets: torch.Tensor, max_elements: int = DEFAULT_MAX_ELEMENTS,
+    offset_m: float = 0.0,
 ) -> torch.Tensor:
-    """Mean over visible frames of each point's distance to each target (paper Stage 3 score).
+    """Mean over visible frames of each point's distance to each target (paper Stage 3 score),
+    or with ``offset_m`` > 0 of | distance - offset_m | (the paper's E_M residual: a marker sits
+    that far off the skin).
 
     points: (T, P, 3); visible: (T, P) bool; targets: (T, N, 3) -> (P, N) metres.  Points never
     visible get +inf everywhere.
@@ -91,6 +94,8 @@ def mean_distance_to_targets(
         tgt = targets[start : start + step]
         centre = tgt.mean(dim=1, keepdim=True)
         dist = torch.cdist(pts_all[start : start + step] - centre, tgt - centre)
+        if offset_m:
+            dist = (dist - offset_m).abs()
         total += (dist * vis_all[start : start + step].unsqueeze(-1)).sum(dim=0)
     seen = vis_all.sum(dim=0)
     mean = total / seen.clamp(min=1.0).unsqueeze(-1)
