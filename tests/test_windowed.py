@@ -236,8 +236,19 @@ def _attach_error_mm(solver, gt, model) -> float:
     return float(1000 * np.linalg.norm(p - t, axis=1).mean())
 
 
-def test_lock_upgrade_on_the_reservoir_improves_the_correspondence(streamed):
+def _mislocked_clone(streamed) -> WindowedSolver:
+    """The streamed solver with six markers' locked points rotated among them (a wrong lock the
+    upgrade has to repair; the bootstrap on this fixture is already good, 11 mm)."""
     s = _clone(streamed)
+    wrong = np.flatnonzero(s.face_ids >= 0)[::6][:6]
+    s.face_ids[wrong] = s.face_ids[np.roll(wrong, 1)]
+    s.bary[wrong] = s.bary[np.roll(wrong, 1)]
+    s._prepare_lock()
+    return s
+
+
+def test_lock_upgrade_on_the_reservoir_repairs_a_wrong_lock(streamed):
+    s = _mislocked_clone(streamed)
     assert 8 <= len(s._reservoir) <= s.config.upgrade_frames
     frames = sorted(f.index for f in s._reservoir)
     assert frames[0] < 10 and frames[-1] > 90  # spread over the whole take, not the recent frames
@@ -250,7 +261,7 @@ def test_lock_upgrade_on_the_reservoir_improves_the_correspondence(streamed):
     assert s.labels_version == version + 1
     assert after < before, (before, after)
     # on a worker thread (live streams): same result, adopted at the first frame after it is ready
-    b = _clone(streamed)
+    b = _mislocked_clone(streamed)
     b.config = replace(b.config, upgrade_in_background=True)
     b._upgrade_lock()
     assert b._upgrade_job is not None and b.labels_version == version
@@ -259,7 +270,7 @@ def test_lock_upgrade_on_the_reservoir_improves_the_correspondence(streamed):
     assert b._upgrade_job is None and b.labels_version == version + 1
     np.testing.assert_array_equal(b.face_ids, s.face_ids)
     # a re-bootstrap meanwhile makes a running upgrade stale: dropped, not adopted
-    c = _clone(streamed)
+    c = _mislocked_clone(streamed)
     c.config = replace(c.config, upgrade_in_background=True)
     c._upgrade_lock()
     c._lock_generation += 1
