@@ -52,7 +52,7 @@ from uuomocap.solver_core.body_params import (
     interpolate_params,
     up_tensor,
 )
-from uuomocap.solver_core.inverse_kinematics import InverseKinematicsConfig, solve_inverse_kinematics
+from uuomocap.solver_core.inverse_kinematics import InverseKinematicsConfig, predicted_markers, solve_inverse_kinematics
 from uuomocap.solver_core.marker_surface_correspondence import find_marker_surface_points
 from uuomocap.solver_core.optimization import LBFGSConfig
 from uuomocap.solver_core.prior_preparation import (
@@ -1246,11 +1246,10 @@ class WindowedSolver:
         ok = cur.assigned
         current_score = torch.full((len(self.face_ids),), float("inf"))
         if ok.any():
-            pts = lbs.SurfacePoints(cur.face_ids[ok], cur.bary[ok])
-            from uuomocap.solver_core.body_params import pose_params
-
+            # scored like Stage 3 scores its candidates: distance to the point + the skin offset
             with torch.no_grad():
-                posed = pose_params(self.model, params, self.up, pts).vertices  # (S,Ma,3)
+                posed = predicted_markers(self.model, params, cur, self.up,
+                                          c.bootstrap_solver.correspondence.marker_offset_m)  # (S,Ma,3)
             d = (posed - torch.nan_to_num(markers[:, ok])).norm(dim=-1)
             w = vis[:, ok].float()
             current_score[ok] = (d * w).sum(0) / w.sum(0).clamp(min=1)
