@@ -206,3 +206,26 @@ def find_marker_surface_points(
     w = vis.float()
     score = torch.where(seen, (dist * w).sum(0) / w.sum(0).clamp(min=1), torch.full_like(score, float("inf")))
     return MarkerAttachment(face_ids, bary, score)
+
+
+def place_on_joints(model, markers: torch.Tensor, visible: torch.Tensor, params: BodyParams, up: torch.Tensor,
+                    members, joints, allowed_vertex_ids, config: CorrespondenceConfig, vertex_faces,
+                    face_ids: torch.Tensor, bary: torch.Tensor, score: torch.Tensor) -> list[int]:
+    """Stage 3 for the markers ``members`` on the vertices whose dominant joint is in ``joints``
+    (and in ``allowed_vertex_ids`` when given).  markers (T,M,3), visible (T,M), params for those
+    frames.  Writes the new points into face_ids / bary / score (M,...) in place and returns the
+    markers placed."""
+    from uuomocap.solver_core.parts import vertex_dominant_joint
+
+    verts = torch.nonzero(torch.isin(vertex_dominant_joint(model), torch.tensor(list(joints)))).reshape(-1)
+    if allowed_vertex_ids is not None:
+        verts = verts[torch.isin(verts, torch.as_tensor(allowed_vertex_ids))]
+    if verts.numel() == 0:
+        return []
+    idx = torch.as_tensor(list(members), dtype=torch.long)
+    sub = find_marker_surface_points(model, markers[:, idx], visible[:, idx], params, up, verts, config, vertex_faces)
+    ok = sub.face_ids >= 0
+    face_ids[idx[ok]] = sub.face_ids[ok]
+    bary[idx[ok]] = sub.bary[ok]
+    score[idx[ok]] = sub.score_m[ok]
+    return [int(m) for m in idx[ok]]

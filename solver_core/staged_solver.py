@@ -41,6 +41,7 @@ from uuomocap.solver_core.inverse_kinematics import (
 from uuomocap.solver_core.marker_surface_correspondence import (
     CorrespondenceConfig,
     find_marker_surface_points,
+    place_on_joints,
 )
 from uuomocap.solver_core.chamfer import vertex_face_table
 from uuomocap.solver_core.cluster_consistency import ClusterConsistencyConfig, inconsistent_markers
@@ -166,25 +167,14 @@ def enforce_cluster_consistency(model, markers, visible, params, up, attachment:
     bad = inconsistent_markers(cluster_labels, marker_joint_ids(model, attachment), model.parents.numpy(), config.cluster_consistency)
     if not bad:
         return attachment, 0
-    dominant = torch.as_tensor(vertex_dominant_joint(model), dtype=torch.long)
     face_ids, bary, score = attachment.face_ids.clone(), attachment.bary.clone(), attachment.score_m.clone()
     groups: dict[tuple[int, ...], list[int]] = {}
     for m, joints in bad.items():
         groups.setdefault(tuple(int(j) for j in joints), []).append(m)
     moved = 0
     for joints, members in groups.items():
-        verts = torch.nonzero(torch.isin(dominant, torch.tensor(joints))).reshape(-1)
-        if allowed_vertex_ids is not None:
-            verts = verts[torch.isin(verts, torch.as_tensor(allowed_vertex_ids))]
-        if verts.numel() == 0:
-            continue
-        idx = torch.as_tensor(members)
-        sub = find_marker_surface_points(model, markers[:, idx], visible[:, idx], params, up, verts, config.correspondence, vertex_faces)
-        ok = sub.face_ids >= 0
-        face_ids[idx[ok]] = sub.face_ids[ok]
-        bary[idx[ok]] = sub.bary[ok]
-        score[idx[ok]] = sub.score_m[ok]
-        moved += int(ok.sum())
+        moved += len(place_on_joints(model, markers, visible, params, up, members, joints, allowed_vertex_ids,
+                                     config.correspondence, vertex_faces, face_ids, bary, score))
     return MarkerAttachment(face_ids, bary, score), moved
 
 

@@ -23,8 +23,7 @@ import numpy as np
 import torch
 
 from uuomocap.solver_core.body_params import BodyParams, MarkerAttachment
-from uuomocap.solver_core.marker_surface_correspondence import CorrespondenceConfig, find_marker_surface_points
-from uuomocap.solver_core.parts import vertex_dominant_joint
+from uuomocap.solver_core.marker_surface_correspondence import CorrespondenceConfig, place_on_joints
 
 
 @dataclass(frozen=True)
@@ -91,7 +90,6 @@ def weak_segment_correspondence(
     if not weak.any():
         return attachment, []
     hybrid = hybrid_params(params, prior_body_pose, weak)
-    dominant = vertex_dominant_joint(model)
     face_ids, bary, score = attachment.face_ids.clone(), attachment.bary.clone(), attachment.score_m.clone()
     moved: list[int] = []
     for j in np.flatnonzero(weak):
@@ -99,16 +97,6 @@ def weak_segment_correspondence(
         if len(members) == 0:
             continue
         near = [int(j), int(parents[j])] + [int(c) for c in np.flatnonzero(parents == j)]
-        verts = torch.nonzero(torch.isin(dominant, torch.tensor(near))).reshape(-1)
-        if allowed_vertex_ids is not None:
-            verts = verts[torch.isin(verts, torch.as_tensor(allowed_vertex_ids))]
-        if verts.numel() == 0:
-            continue
-        idx = torch.as_tensor(members)
-        sub = find_marker_surface_points(model, markers[:, idx], visible[:, idx], hybrid, up, verts, correspondence, vertex_faces)
-        ok = sub.face_ids >= 0
-        face_ids[idx[ok]] = sub.face_ids[ok]
-        bary[idx[ok]] = sub.bary[ok]
-        score[idx[ok]] = sub.score_m[ok]
-        moved.extend(int(m) for m in idx[ok])
+        moved += place_on_joints(model, markers, visible, hybrid, up, members, near, allowed_vertex_ids, correspondence,
+                                 vertex_faces, face_ids, bary, score)
     return MarkerAttachment(face_ids, bary, score), moved
