@@ -25,6 +25,7 @@ from uuomocap.solver_core.body_params import BodyParams, pose_params
 from uuomocap.solver_core.chamfer import mean_distance_to_targets, vertex_face_table
 from uuomocap.solver_core.body_params import MarkerAttachment
 from uuomocap.solver_core.mesh import closest_point_on_triangles
+from uuomocap.solver_core.parts import vertex_dominant_joint
 
 
 @dataclass(frozen=True)
@@ -215,8 +216,6 @@ def place_on_joints(model, markers: torch.Tensor, visible: torch.Tensor, params:
     (and in ``allowed_vertex_ids`` when given).  markers (T,M,3), visible (T,M), params for those
     frames.  Writes the new points into face_ids / bary / score (M,...) in place and returns the
     markers placed."""
-    from uuomocap.solver_core.parts import vertex_dominant_joint
-
     verts = torch.nonzero(torch.isin(vertex_dominant_joint(model), torch.tensor(list(joints)))).reshape(-1)
     if allowed_vertex_ids is not None:
         verts = verts[torch.isin(verts, torch.as_tensor(allowed_vertex_ids))]

@@ -87,8 +87,8 @@ class SolverConfig:
     # Beyond the paper (MoSh-style latent markers): at Stage 5 each marker may slide off its
     # surface point with this prior scale (metres), jointly with the pose; None = the paper's Stage 5.
     refinement_marker_slack_m: float | None = 0.03
-    # Beyond the paper: markers of bones with <= 2 markers below them are placed under the video
-    # prior's rotation of those bones (weak_segment_correspondence explains why).
+    # Beyond the paper: markers of bones with one marker at or below them are placed under the
+    # video prior's rotation of those bones (weak_segment_correspondence explains why).
     weak_segments: WeakSegmentConfig = WeakSegmentConfig()
     # Beyond the paper: markers of one rigid cluster stay on neighbouring bones (cluster_consistency).
     cluster_consistency: ClusterConsistencyConfig = ClusterConsistencyConfig()
@@ -394,16 +394,15 @@ def solve(
             )
             diag["weak_segment_markers"] = weak_moved
             refine_ik = replace(config.ik, robust_scale_m=config.refinement_robust_scale_m)
-            ref_root, ref_body = current.root_orient, current.body_pose
             if config.refinement_marker_slack_m is None:
                 current, rep = solve_inverse_kinematics(
-                    model, mk, vis, current_att, ref_root, ref_body, beta_prior, current, up, refine_ik,
+                    model, mk, vis, current_att, current.root_orient, current.body_pose, beta_prior, current, up, refine_ik,
                     FreeParameters(yaw=False), rate_hz=rate_hz, on_step=stepper("stage5"),
                 )
             else:
                 ik_cfg = replace(refine_ik, marker_slack_m=config.refinement_marker_slack_m)
                 current, rep, disp = solve_inverse_kinematics_with_slack(
-                    model, mk, vis, current_att, ref_root, ref_body, beta_prior, current, up, ik_cfg,
+                    model, mk, vis, current_att, current.root_orient, current.body_pose, beta_prior, current, up, ik_cfg,
                     FreeParameters(yaw=False), rate_hz=rate_hz, on_step=stepper("stage5"),
                 )
                 current_att = fold_marker_slack(model, current.betas, current_att, disp, vertex_faces)

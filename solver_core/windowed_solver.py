@@ -820,7 +820,6 @@ class WindowedSolver:
         count = N_POSE if c.prior_includes_root else N_POSE - 3
         weight = c.pose_weight / (count * frames) * self._prior_scale
         if not c.prior_includes_root:
-            weight = weight.copy()
             weight[:3] = 0.0
         return diff, weight
 
