@@ -242,6 +242,8 @@ def initial_fit(markers: np.ndarray, visible: np.ndarray, rate_hz: float, up_axi
     stamps = np.round(np.arange(len(sel)) * 1e9).astype(np.int64)
     prior = neutral_prior(len(sel), up_axis, model.num_betas, stamps)
     cfg = SolverConfig(screening_frames=len(sel), chamfer_frames=len(sel), force_full_body=True)
+    # the neutral prior has no rotation to offer a second opinion on the marker points
+    cfg = replace(cfg, placement_selection=replace(cfg.placement_selection, enabled=False))
     # frames are not consecutive: a 1 Hz "rate" makes the temporal terms negligible
     res = solve(markers[sel], visible[sel], 1.0, up_axis, prior, np.zeros(model.num_betas), model,
                 chamfer_model, cfg, progress)

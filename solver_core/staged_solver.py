@@ -47,6 +47,7 @@ from uuomocap.solver_core.chamfer import vertex_face_table
 from uuomocap.solver_core.cluster_consistency import ClusterConsistencyConfig, inconsistent_markers
 from uuomocap.solver_core.part_matching import PartMatch, PartMatchingConfig, full_translation, match_markers_to_part
 from uuomocap.solver_core.parts import vertex_dominant_joint
+from uuomocap.solver_core.placement_selection import PlacementSelectionConfig, select_marker_placements
 from uuomocap.solver_core.pose_fitting import PoseFittingConfig, fit_pose
 from uuomocap.solver_core.prior_preparation import BodyPrior
 from uuomocap.solver_core.rotations import matrix_to_axis_angle
@@ -90,6 +91,9 @@ class SolverConfig:
     # Beyond the paper: markers of bones with one marker at or below them are placed under the
     # video prior's rotation of those bones (weak_segment_correspondence explains why).
     weak_segments: WeakSegmentConfig = WeakSegmentConfig()
+    # Beyond the paper: after Stage 5 each marker may take the point chosen under the video
+    # prior's rotation of its bone, where that fits better (placement_selection explains why).
+    placement_selection: PlacementSelectionConfig = PlacementSelectionConfig()
     # Beyond the paper: markers of one rigid cluster stay on neighbouring bones (cluster_consistency).
     cluster_consistency: ClusterConsistencyConfig = ClusterConsistencyConfig()
     # Stop early for the stage ablation: None, "matching", "stage2" or "stage4".
@@ -379,7 +383,27 @@ def solve(
         return _finish(model, p4, att, diag, seconds, losses, stage_results, up)
 
     # ---- Stage 5: repeat Stages 3-4 with the previous result as the pose prior
+    refine_ik = replace(config.ik, robust_scale_m=config.refinement_robust_scale_m)
+
+    def refine(params: BodyParams, attachment: MarkerAttachment, markers_t: torch.Tensor, visible_t: torch.Tensor):
+        """Stage 5's IK (pose prior = ``params``), with latent markers folded back into points."""
+        if config.refinement_marker_slack_m is None:
+            out, rep = solve_inverse_kinematics(
+                model, markers_t, visible_t, attachment, params.root_orient, params.body_pose, beta_prior, params, up,
+                refine_ik, FreeParameters(yaw=False), rate_hz=rate_hz, on_step=stepper("stage5"),
+            )
+        else:
+            ik_cfg = replace(refine_ik, marker_slack_m=config.refinement_marker_slack_m)
+            out, rep, disp = solve_inverse_kinematics_with_slack(
+                model, markers_t, visible_t, attachment, params.root_orient, params.body_pose, beta_prior, params, up,
+                ik_cfg, FreeParameters(yaw=False), rate_hz=rate_hz, on_step=stepper("stage5"),
+            )
+            attachment = fold_marker_slack(model, out.betas, attachment, disp, vertex_faces)
+        losses["stage5"] = rep.final_loss
+        return out, attachment
+
     current, current_att = p4, att
+    sel = torch.as_tensor(_evenly_spaced(data_frames, config.placement_selection.frames))
     with timed("stage5", f"{config.refinement_rounds} round(s)"):
         for _ in range(config.refinement_rounds):
             current_att = find_marker_surface_points(
@@ -393,20 +417,13 @@ def solve(
                 config.correspondence, vertex_faces, config.weak_segments,
             )
             diag["weak_segment_markers"] = weak_moved
-            refine_ik = replace(config.ik, robust_scale_m=config.refinement_robust_scale_m)
-            if config.refinement_marker_slack_m is None:
-                current, rep = solve_inverse_kinematics(
-                    model, mk, vis, current_att, current.root_orient, current.body_pose, beta_prior, current, up, refine_ik,
-                    FreeParameters(yaw=False), rate_hz=rate_hz, on_step=stepper("stage5"),
+            if config.placement_selection.enabled:
+                current_att, took = select_marker_placements(
+                    model, mk[sel], vis[sel], current.frames(sel), current_att, marker_joint_ids(model, current_att),
+                    prior_body[sel], up, part_output_ids, config.correspondence, vertex_faces, refine, refine_ik.marker_offset_m,
                 )
-            else:
-                ik_cfg = replace(refine_ik, marker_slack_m=config.refinement_marker_slack_m)
-                current, rep, disp = solve_inverse_kinematics_with_slack(
-                    model, mk, vis, current_att, current.root_orient, current.body_pose, beta_prior, current, up, ik_cfg,
-                    FreeParameters(yaw=False), rate_hz=rate_hz, on_step=stepper("stage5"),
-                )
-                current_att = fold_marker_slack(model, current.betas, current_att, disp, vertex_faces)
-            losses["stage5"] = rep.final_loss
+                diag["prior_placement_markers"] = took
+            current, current_att = refine(current, current_att, mk, vis)
     stage_results["stage5"] = current
     diag["stage5_marker_fit_mm"] = 1000 * marker_fit_error(model, mk, vis, current, current_att, up, config.ik.marker_offset_m)
     return _finish(model, current, current_att, diag, seconds, losses, stage_results, up)

@@ -154,7 +154,11 @@ def solver_config_for(method: str, **overrides):
             correspondence=replace(CorrespondenceConfig(), method="vertex"),
             ik=replace(InverseKinematicsConfig(), offset_model="distance", smoothness_weight=0.0),
             refinement_rounds=1,
+            placement_selection=replace(cfg.placement_selection, enabled=False),
         )
+    elif method == "markers-only":
+        # the neutral prior has no rotation to offer a second opinion on the marker points
+        cfg = replace(cfg, placement_selection=replace(cfg.placement_selection, enabled=False))
     elif method == "uuo-matching":
         cfg = replace(cfg, stop_after="matching")
     elif method == "uuo-stage2":
