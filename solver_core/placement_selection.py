@@ -32,8 +32,8 @@ from uuomocap.solver_core.weak_segment_correspondence import hybrid_params
 
 @dataclass(frozen=True)
 class PlacementSelectionConfig:
-    # Beyond the paper (after Stage 5): 40-marker walk / jump / arms 8.1 / 10.5 / 8.3 ->
-    # 7.2 / 8.9 / 8.4 mm MPJPE (the prior's placement alone, without the choice: 7.3 / 9.7 / 8.5).
+    # Beyond the paper (in each Stage-5 round): 40-marker walk / jump / arms 8.1 / 10.5 / 8.3 ->
+    # 7.4 / 7.9 / 8.0 mm MPJPE (the prior's placement alone, without the choice: 7.3 / 9.7 / 8.5).
     enabled: bool = True
     # Frames on which both placements are fitted for the choice (evenly spread over the take).
     frames: int = 150

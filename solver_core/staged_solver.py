@@ -91,8 +91,8 @@ class SolverConfig:
     # Beyond the paper: markers of bones with one marker at or below them are placed under the
     # video prior's rotation of those bones (weak_segment_correspondence explains why).
     weak_segments: WeakSegmentConfig = WeakSegmentConfig()
-    # Beyond the paper: after Stage 5 each marker may take the point chosen under the video
-    # prior's rotation of its bone, where that fits better (placement_selection explains why).
+    # Beyond the paper: in each Stage-5 round, before its IK, each marker may take the point chosen
+    # under the video prior's rotation of its bone, where that fits better (placement_selection).
     placement_selection: PlacementSelectionConfig = PlacementSelectionConfig()
     # Beyond the paper: markers of one rigid cluster stay on neighbouring bones (cluster_consistency).
     cluster_consistency: ClusterConsistencyConfig = ClusterConsistencyConfig()
