@@ -164,7 +164,12 @@ class WindowedSolverConfig:
     # spread evenly over the take (at most upgrade_frames; memory stays bounded), and each time
     # the take has grown by upgrade_growth x since the last lock, the staged solver runs on the
     # reservoir and may replace the lock ("lock upgrade", see _finish_upgrade).  0 frames = never.
-    upgrade_frames: int = 96
+    # 192 rather than 96 (40 markers, refined MPJPE, 8 s walk / jump / arms and seed-1 run / squat /
+    # turn / walk, 15 s walk): 12.9 / 18.0 / 15.6, 24.4 / 17.0 / 18.8 / 16.5, 22.8 ->
+    # 12.0 / 14.2 / 16.5, 24.0 / 17.0 / 19.1 / 15.6, 22.1 mm.  The staged solver's lock improves with
+    # its frames (15 s walk, that lock held fixed: 120 / 225 frames 24.4 / 21.5 mm, the whole
+    # take 20.1); an upgrade costs ~30-45 s instead of ~25-30 (a worker thread in live use).
+    upgrade_frames: int = 192
     upgrade_growth: float = 2.0
     # Run the upgrade on a worker thread while estimates go on (live streams: no ~5 s stall);
     # False keeps replays deterministic (the result lands at a fixed frame).
