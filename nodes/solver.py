@@ -33,7 +33,7 @@ class SolverNodeConfig:
     smoothness_weight: float = 0.01
     publish_estimates: bool = True
     threads: int = 1  # torch intra-op threads (1 = deterministic and leaves a core to the graph)
-    # lock upgrades (the staged solver on frames spread over the take, ~30-45 s each time the take
+    # lock upgrades (the staged solver on frames spread over the take, ~30-60 s each time the take
     # doubles) on a worker thread: true for live streams (no stall), false keeps replays deterministic
     upgrade_in_background: bool = False
 

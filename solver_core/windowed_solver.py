@@ -168,7 +168,7 @@ class WindowedSolverConfig:
     # turn / walk, 15 s walk): 12.9 / 18.0 / 15.6, 24.4 / 17.0 / 18.8 / 16.5, 22.8 ->
     # 12.0 / 14.2 / 16.5, 24.0 / 17.0 / 19.1 / 15.6, 22.1 mm.  The staged solver's lock improves with
     # its frames (15 s walk, that lock held fixed: 120 / 225 frames 24.4 / 21.5 mm, the whole
-    # take 20.1); an upgrade costs ~30-45 s instead of ~25-30 (a worker thread in live use).
+    # take 20.1); an upgrade costs ~30-60 s instead of ~25-30 (a worker thread in live use).
     upgrade_frames: int = 192
     upgrade_growth: float = 2.0
     # Run the upgrade on a worker thread while estimates go on (live streams: no ~5 s stall);
