@@ -254,3 +254,30 @@ def test_cluster_consistency_moves_a_marker_that_left_its_rigid_group():
     assert {"left_shoulder", "left_elbow", "left_wrist", "left_collar", "left_hand"} == allowed
     # a singleton says nothing about its marker
     assert inconsistent_markers(np.array([0, 0, 1]), np.array([j["left_elbow"], j["left_wrist"], j["head"]]), parents) == {}
+
+
+def test_a_refinement_round_that_fits_worse_is_not_kept(full_session, monkeypatch):
+    """Stage 5 keeps its start when its round explains the markers worse (a failed round must not
+    replace a good Stage-4 result)."""
+    torch.set_num_threads(1)
+    from dataclasses import replace
+
+    import uuomocap.solver_core.staged_solver as staged
+    from uuomocap.solver_methods import inputs_from_session, load_models
+
+    real = staged.solve_inverse_kinematics_with_slack
+
+    def drifting(*args, **kwargs):  # the real IK, then the body moved 10 cm: a failed round
+        out, rep, disp = real(*args, **kwargs)
+        return replace(out, trans=out.trans + torch.tensor([0.1, 0.0, 0.0])), rep, disp
+
+    monkeypatch.setattr(staged, "solve_inverse_kinematics_with_slack", drifting)
+    inp = inputs_from_session(full_session, load_gt=True)
+    model, chamfer_model = load_models(inp.body_model)
+    res = staged.solve(inp.markers, inp.visible, inp.rate_hz, inp.up_axis, inp.prior, inp.shape_prior, model,
+                       chamfer_model, _fast_config())
+    d = res.diagnostics
+    assert d["stage5_rounds_reverted"] == 1
+    assert res.stage_results["stage5"] is res.stage_results["stage4"]
+    assert d["stage5_marker_fit_mm"] == pytest.approx(d["stage4_marker_fit_mm"])
+    assert d["stage4_marker_fit_mm"] < 50.0  # the kept result still fits (the 10 cm shift would not)
