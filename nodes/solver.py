@@ -64,9 +64,11 @@ class Solver(Node):
     def setup(self) -> None:
         import torch
 
+        from uuomocap.solver_core.staged_solver import preload_lazy_imports
         from uuomocap.solver_core.windowed_solver import WindowedSolverConfig
 
         torch.set_num_threads(self.config.threads)
+        preload_lazy_imports()  # at start-up: the solver is built on the first marker frame
         c = self.config
         self.model, self.chamfer_model = load_models(c.body_model)
         self.solver_config = replace(WindowedSolverConfig(), bootstrap_s=c.bootstrap_s, lag_frames=c.lag_frames, hop_frames=c.hop_frames,

@@ -79,8 +79,14 @@ class SolverConfig:
     yaw_hypotheses_deg: tuple[float, ...] = (0.0, 90.0, 180.0, 270.0)
     # Beyond the paper: hypotheses whose registered yaws agree within this are solved once.
     merge_hypotheses_deg: float = 20.0
+    # Beyond the paper (speed): screen only this many of them, best registration first (None = all).
+    max_hypotheses: int | None = None
     # Beyond the paper (speed): frames on which each hypothesis goes through Stages 2-4.
     screening_frames: int = 60
+    # Beyond the paper (speed): Stage 2 and Stage 4 settings while screening the hypotheses
+    # (None = the stages' own): a ranking can be cheaper than the winner's fit.
+    screening_pose_fitting: PoseFittingConfig | None = None
+    screening_ik: InverseKinematicsConfig | None = None
     # Beyond the paper (speed): frames of the winner's Stage 2 (interpolated to all frames for IK).
     chamfer_frames: int = 150
     # Paper Sec. "Stage 5": repeat Stages 3-4 once (more rounds are beyond the paper).
@@ -124,6 +130,15 @@ class SolveResult:
     marker_parts: list[str]                  # per marker: dominant joint name ('' unassigned)
     diagnostics: dict = field(default_factory=dict)
     stage_results: dict[str, BodyParams] = field(default_factory=dict)
+
+
+def preload_lazy_imports() -> None:
+    """Import what a first solve would otherwise import on its way: scikit-learn's clustering
+    (segmentation) and torch's compiler stack, which ``torch.optim`` pulls in when the first
+    optimizer is built.  ~3.5 s on the 2-core CPU; a live solver calls this at start-up so its
+    first bootstrap does not pay it mid-take."""
+    import sklearn.cluster  # noqa: F401
+    import torch._dynamo  # noqa: F401
 
 
 def _evenly_spaced(indices: np.ndarray, count: int) -> np.ndarray:
@@ -293,9 +308,11 @@ def solve(
     # large torso surface over the arm the markers are on; after IK the true part fits best).
     candidates = [match] + list(match.alternatives)
     hypotheses = [(cand, yaw, tilt) for cand in candidates
-                  for yaw, tilt in _distinct_hypotheses(cand, config.merge_hypotheses_deg)[: None if cand is match else 2]]
+                  for yaw, tilt in _distinct_hypotheses(cand, config.merge_hypotheses_deg)[: config.max_hypotheses if cand is match else 2]]
     screen = _evenly_spaced(data_frames, config.screening_frames)
     screen_t = torch.as_tensor(screen)
+    screen_pf = config.screening_pose_fitting or config.pose_fitting
+    screen_ik = config.screening_ik or config.ik
     results = []
     with timed("stage1", f"{len(hypotheses)} hypotheses"):
         for cand, hyp_yaw, hyp_tilt in hypotheses:
@@ -310,7 +327,7 @@ def solve(
             init = BodyParams(root_h.clone(), prior_body[screen_t].clone(), trans, cand_betas.clone(), yaw_t)
             p2, _, tilt = fit_pose(
                 chamfer_model, mk[screen_t], vis[screen_t], root_h, prior_body[screen_t], beta_prior, init, up,
-                cand_chamfer_ids, config.pose_fitting, rate_hz=rate_hz, on_step=stepper("stage1"),
+                cand_chamfer_ids, screen_pf, rate_hz=rate_hz, on_step=stepper("stage1"),
             )
             tilt = tilt @ torch.as_tensor(hyp_tilt, dtype=torch.float32)  # total tilt of this hypothesis
             tilted_root = apply_root_offset(prior_root[screen_t], tilt)
@@ -319,7 +336,7 @@ def solve(
             )
             p4, _ = solve_inverse_kinematics(
                 model, mk[screen_t], vis[screen_t], att, tilted_root, prior_body[screen_t], beta_prior, p2, up,
-                config.ik, FreeParameters(yaw=False), rate_hz=rate_hz, on_step=stepper("stage1"),
+                screen_ik, FreeParameters(yaw=False), rate_hz=rate_hz, on_step=stepper("stage1"),
             )
             err = marker_fit_error(model, mk[screen_t], vis[screen_t], p4, att, up, config.ik.marker_offset_m)
             results.append({"yaw": hyp_yaw, "fit_m": err, "stage2": p2, "stage2_yaw": float(p2.yaw), "tilt": tilt,

@@ -61,7 +61,7 @@ from uuomocap.solver_core.prior_preparation import (
     neutral_prior,
     prepare_prior,
 )
-from uuomocap.solver_core.staged_solver import SolverConfig, marker_part_names, part_vertex_ids, solve
+from uuomocap.solver_core.staged_solver import SolverConfig, marker_part_names, part_vertex_ids, preload_lazy_imports, solve
 
 N_POSE = 72  # root (before the yaw) + 23 body joints, axis-angle
 N_PARAMS = N_POSE + 3  # + translation
@@ -75,10 +75,18 @@ def fast_bootstrap_config() -> SolverConfig:
         c,
         screening_frames=20,
         chamfer_frames=60,
-        pose_fitting=replace(c.pose_fitting, lbfgs=replace(c.pose_fitting.lbfgs, max_iterations=40)),
-        # plain squares at Stage 4 here: with its 40 iterations the robust kernel of the offline
-        # default left the near-online solver 1.4 mm worse (40 markers: 18.9 -> 20.3 mm)
-        ik=replace(c.ik, lbfgs=replace(c.ik.lbfgs, max_iterations=40), robust_scale_m=None),
+        # The two best-registered yaws only (the lock upgrades screen all four): on 7 sessions the
+        # winner was the best-registered one 6 times and tied with the second once; 4 hypotheses
+        # cost the jump 5.5 s of its 11.7 s bootstrap.
+        max_hypotheses=2,
+        # Screening of the yaw hypotheses: 40 iterations, plain squares at Stage 4 (with 40
+        # iterations the robust kernel is not converged: 1.4 mm worse at the end).  The winner then
+        # gets 100 iterations at Stages 2, 4, 5 and Stage 4's robust kernel as offline: the lock is
+        # where the refined output's error comes from.
+        screening_pose_fitting=replace(c.pose_fitting, lbfgs=replace(c.pose_fitting.lbfgs, max_iterations=40)),
+        screening_ik=replace(c.ik, lbfgs=replace(c.ik.lbfgs, max_iterations=40), robust_scale_m=None),
+        pose_fitting=replace(c.pose_fitting, lbfgs=replace(c.pose_fitting.lbfgs, max_iterations=100)),
+        ik=replace(c.ik, lbfgs=replace(c.ik.lbfgs, max_iterations=100)),
         matching=replace(c.matching, lbfgs=replace(c.matching.lbfgs, max_iterations=40), frames=24),
         # the per-marker point choice costs two more IK fits: left to the lock upgrades (full budgets)
         placement_selection=replace(c.placement_selection, enabled=False),
@@ -408,6 +416,7 @@ class WindowedSolver:
         # make each of them ~100x slower on a busy CPU (measured: 15 ms vs 0.05 ms for a 75x120
         # product), so BLAS runs single-threaded in this process from here on.
         threadpool_limits(1, user_api="blas")
+        preload_lazy_imports()  # before the stream, not inside the first bootstrap (~3.5 s)
         self.r_wc = camera_to_world_rotation(up_axis)
         self._priors: deque = deque(maxlen=config.prior_buffer)
         self._prior72: deque = deque(maxlen=config.prior_buffer)

@@ -281,3 +281,33 @@ def test_a_refinement_round_that_fits_worse_is_not_kept(full_session, monkeypatc
     assert res.stage_results["stage5"] is res.stage_results["stage4"]
     assert d["stage5_marker_fit_mm"] == pytest.approx(d["stage4_marker_fit_mm"])
     assert d["stage4_marker_fit_mm"] < 50.0  # the kept result still fits (the 10 cm shift would not)
+
+
+def test_screening_budget_caps_only_the_hypotheses(full_session):
+    """The screening configs cap the L-BFGS runs of the Stage-1 hypotheses; the winner's Stage 2
+    keeps its own budget (the windowed bootstrap screens cheaply and spends on the winner)."""
+    torch.set_num_threads(1)
+    from dataclasses import replace
+
+    from uuomocap.solver_core.staged_solver import SolverProgress, solve
+    from uuomocap.solver_methods import inputs_from_session, load_models
+
+    class MostIterations(SolverProgress):
+        def __init__(self):
+            self.most: dict[str, int] = {}
+
+        def stage_step(self, name, iterations, loss):
+            self.most[name] = max(self.most.get(name, 0), iterations)
+
+    inp = inputs_from_session(full_session, load_gt=True)
+    model, chamfer_model = load_models(inp.body_model)
+    seen = MostIterations()
+    base = _fast_config()
+    cfg = replace(base, stop_after="stage2",
+                  screening_pose_fitting=replace(base.pose_fitting, lbfgs=replace(base.pose_fitting.lbfgs, max_iterations=10)),
+                  screening_ik=replace(base.ik, lbfgs=replace(base.ik.lbfgs, max_iterations=10)))
+    res = solve(inp.markers, inp.visible, inp.rate_hz, inp.up_axis, inp.prior, inp.shape_prior, model, chamfer_model, cfg,
+                progress=seen)
+    assert seen.most["stage1"] == 10  # L-BFGS runs in steps of 10 iterations: one step per fit
+    assert seen.most["stage2"] > 10
+    assert res.diagnostics["full_body"] is True
