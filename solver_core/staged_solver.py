@@ -424,7 +424,7 @@ def solve(
     sel = torch.as_tensor(_evenly_spaced(data_frames, config.placement_selection.frames))
     with timed("stage5", f"{config.refinement_rounds} round(s)"):
         for _ in range(config.refinement_rounds):
-            start, start_att = current, current_att
+            start, start_att, start_loss = current, current_att, losses.get("stage5")
             current_att = find_marker_surface_points(
                 model, mk, vis, current, up, part_output_ids, config.correspondence, vertex_faces, previous=current_att
             )
@@ -448,6 +448,10 @@ def solve(
                 # Beyond the paper: a round that explains the markers worse than its start failed (a
                 # seed-1 turn: fit 9.7 -> 11.2 mm, MPJPE 14.9 -> 24.0 mm); keep its start.
                 current, current_att = start, start_att
+                if start_loss is None:  # the loss reported is the kept round's (none kept: no Stage-5 loss)
+                    losses.pop("stage5", None)
+                else:
+                    losses["stage5"] = start_loss
                 diag["stage5_rounds_reverted"] = diag.get("stage5_rounds_reverted", 0) + 1
                 break
             current_fit = fit

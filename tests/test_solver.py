@@ -280,6 +280,7 @@ def test_a_refinement_round_that_fits_worse_is_not_kept(full_session, monkeypatc
     assert d["stage5_rounds_reverted"] == 1
     assert res.stage_results["stage5"] is res.stage_results["stage4"]
     assert d["stage5_marker_fit_mm"] == pytest.approx(d["stage4_marker_fit_mm"])
+    assert "stage5" not in d["stage_losses"]  # no round kept: no Stage-5 loss reported
     assert d["stage4_marker_fit_mm"] < 50.0  # the kept result still fits (the 10 cm shift would not)
 
 
