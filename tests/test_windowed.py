@@ -323,9 +323,10 @@ def test_recheck_keeps_a_good_lock(streamed):
     # the re-check scores the current points exactly as Stage 3 scores candidates (with the 9.5 mm
     # skin offset); scored without it every marker looked ~9 mm worse than any fresh candidate
     s = _clone(streamed)
-    faces, reassigned, version = s.face_ids.copy(), s.stats["reassigned"], s.labels_version
+    faces, bary, reassigned, version = s.face_ids.copy(), s.bary.copy(), s.stats["reassigned"], s.labels_version
     s._recheck()
-    moved = int((s.face_ids != faces).sum())
+    # a re-assignment may keep the face and move the point on it (new barycentrics)
+    moved = int(((s.face_ids != faces) | (np.abs(s.bary - bary).max(axis=1) > 0)).sum())
     assert s.stats["reassigned"] - reassigned == moved
     assert moved <= 2, moved
     # and a marker put on the wrong limb is moved back
