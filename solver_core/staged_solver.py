@@ -447,12 +447,20 @@ def solve(
             if fit > current_fit:
                 # Beyond the paper: a round that explains the markers worse than its start failed (a
                 # seed-1 turn: fit 9.7 -> 11.2 mm, MPJPE 14.9 -> 24.0 mm); keep its start.
-                current, current_att = start, start_att
-                if start_loss is None:  # the loss reported is the kept round's (none kept: no Stage-5 loss)
-                    losses.pop("stage5", None)
-                else:
-                    losses["stage5"] = start_loss
                 diag["stage5_rounds_reverted"] = diag.get("stage5_rounds_reverted", 0) + 1
+                # Its new points are what failed: the IK alone on the start's points still takes out
+                # Stage 4's robust-kernel jitter (the turn: MPJVE 109 mm/s kept at Stage 4).
+                current, current_att = refine(start, start_att, mk, vis)
+                fit = marker_fit_error(model, mk, vis, current, current_att, up, config.ik.marker_offset_m)
+                if fit > current_fit:
+                    current, current_att = start, start_att
+                    if start_loss is None:  # the loss reported is the kept round's (none kept: no Stage-5 loss)
+                        losses.pop("stage5", None)
+                    else:
+                        losses["stage5"] = start_loss
+                else:
+                    current_fit = fit
+                    diag["stage5_rounds_kept_points"] = diag.get("stage5_rounds_kept_points", 0) + 1
                 break
             current_fit = fit
     stage_results["stage5"] = current

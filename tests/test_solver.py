@@ -281,6 +281,39 @@ def test_a_refinement_round_that_fits_worse_is_not_kept(full_session, monkeypatc
     assert res.stage_results["stage5"] is res.stage_results["stage4"]
     assert d["stage5_marker_fit_mm"] == pytest.approx(d["stage4_marker_fit_mm"])
     assert "stage5" not in d["stage_losses"]  # no round kept: no Stage-5 loss reported
+
+
+def test_a_failed_round_still_refines_on_its_start_points(full_session, monkeypatch):
+    """When a round's new points fit worse, Stage 5's IK on the start's points is kept if it fits
+    (it removes Stage 4's robust-kernel jitter)."""
+    torch.set_num_threads(1)
+    from dataclasses import replace
+
+    import uuomocap.solver_core.staged_solver as staged
+    from uuomocap.solver_methods import inputs_from_session, load_models
+
+    real = staged.solve_inverse_kinematics_with_slack
+    calls = []
+
+    def round_fails_once(*args, **kwargs):
+        # calls 1-2: the placement choice's two fits; 3: the round's IK (moved 10 cm: a failed
+        # round); 4: the IK on the start's points (real)
+        calls.append(1)
+        out, rep, disp = real(*args, **kwargs)
+        if len(calls) == 3:
+            out = replace(out, trans=out.trans + torch.tensor([0.1, 0.0, 0.0]))
+        return out, rep, disp
+
+    monkeypatch.setattr(staged, "solve_inverse_kinematics_with_slack", round_fails_once)
+    inp = inputs_from_session(full_session, load_gt=True)
+    model, chamfer_model = load_models(inp.body_model)
+    res = staged.solve(inp.markers, inp.visible, inp.rate_hz, inp.up_axis, inp.prior, inp.shape_prior, model,
+                       chamfer_model, _fast_config())
+    d = res.diagnostics
+    assert len(calls) == 4
+    assert d["stage5_rounds_reverted"] == 1 and d["stage5_rounds_kept_points"] == 1
+    assert res.stage_results["stage5"] is not res.stage_results["stage4"]
+    assert d["stage5_marker_fit_mm"] <= d["stage4_marker_fit_mm"]
     assert d["stage4_marker_fit_mm"] < 50.0  # the kept result still fits (the 10 cm shift would not)
 
 
