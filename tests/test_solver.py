@@ -256,46 +256,46 @@ def test_cluster_consistency_moves_a_marker_that_left_its_rigid_group():
     assert inconsistent_markers(np.array([0, 0, 1]), np.array([j["left_elbow"], j["left_wrist"], j["head"]]), parents) == {}
 
 
-def test_a_refinement_round_that_fits_worse_is_not_kept(full_session, monkeypatch):
-    """Stage 5 keeps its start when its round explains the markers worse (a failed round must not
-    replace a good Stage-4 result)."""
+def _solve_with_patched_stage5_ik(full_session, monkeypatch, patched_ik):
+    """A real solve of the module's session with Stage 5's IK replaced by ``patched_ik(real, *args, **kwargs)``."""
     torch.set_num_threads(1)
-    from dataclasses import replace
-
     import uuomocap.solver_core.staged_solver as staged
     from uuomocap.solver_methods import inputs_from_session, load_models
 
     real = staged.solve_inverse_kinematics_with_slack
+    monkeypatch.setattr(staged, "solve_inverse_kinematics_with_slack", lambda *a, **k: patched_ik(real, *a, **k))
+    inp = inputs_from_session(full_session, load_gt=True)
+    model, chamfer_model = load_models(inp.body_model)
+    return staged.solve(inp.markers, inp.visible, inp.rate_hz, inp.up_axis, inp.prior, inp.shape_prior, model,
+                        chamfer_model, _fast_config())
 
-    def drifting(*args, **kwargs):  # the real IK, then the body moved 10 cm: a failed round
+
+def test_a_refinement_round_that_fits_worse_is_not_kept(full_session, monkeypatch):
+    """Stage 5 keeps its start when its round explains the markers worse (a failed round must not
+    replace a good Stage-4 result)."""
+    from dataclasses import replace
+
+    def drifting(real, *args, **kwargs):  # the real IK, then the body moved 10 cm: a failed round
         out, rep, disp = real(*args, **kwargs)
         return replace(out, trans=out.trans + torch.tensor([0.1, 0.0, 0.0])), rep, disp
 
-    monkeypatch.setattr(staged, "solve_inverse_kinematics_with_slack", drifting)
-    inp = inputs_from_session(full_session, load_gt=True)
-    model, chamfer_model = load_models(inp.body_model)
-    res = staged.solve(inp.markers, inp.visible, inp.rate_hz, inp.up_axis, inp.prior, inp.shape_prior, model,
-                       chamfer_model, _fast_config())
+    res = _solve_with_patched_stage5_ik(full_session, monkeypatch, drifting)
     d = res.diagnostics
     assert d["stage5_rounds_reverted"] == 1
     assert res.stage_results["stage5"] is res.stage_results["stage4"]
     assert d["stage5_marker_fit_mm"] == pytest.approx(d["stage4_marker_fit_mm"])
     assert "stage5" not in d["stage_losses"]  # no round kept: no Stage-5 loss reported
+    assert d["stage4_marker_fit_mm"] < 50.0  # the kept result still fits (the 10 cm shift would not)
 
 
 def test_a_failed_round_still_refines_on_its_start_points(full_session, monkeypatch):
     """When a round's new points fit worse, Stage 5's IK on the start's points is kept if it fits
     (it removes Stage 4's robust-kernel jitter)."""
-    torch.set_num_threads(1)
     from dataclasses import replace
 
-    import uuomocap.solver_core.staged_solver as staged
-    from uuomocap.solver_methods import inputs_from_session, load_models
-
-    real = staged.solve_inverse_kinematics_with_slack
     calls = []
 
-    def round_fails_once(*args, **kwargs):
+    def round_fails_once(real, *args, **kwargs):
         # calls 1-2: the placement choice's two fits; 3: the round's IK (moved 10 cm: a failed
         # round); 4: the IK on the start's points (real)
         calls.append(1)
@@ -304,17 +304,12 @@ def test_a_failed_round_still_refines_on_its_start_points(full_session, monkeypa
             out = replace(out, trans=out.trans + torch.tensor([0.1, 0.0, 0.0]))
         return out, rep, disp
 
-    monkeypatch.setattr(staged, "solve_inverse_kinematics_with_slack", round_fails_once)
-    inp = inputs_from_session(full_session, load_gt=True)
-    model, chamfer_model = load_models(inp.body_model)
-    res = staged.solve(inp.markers, inp.visible, inp.rate_hz, inp.up_axis, inp.prior, inp.shape_prior, model,
-                       chamfer_model, _fast_config())
+    res = _solve_with_patched_stage5_ik(full_session, monkeypatch, round_fails_once)
     d = res.diagnostics
     assert len(calls) == 4
     assert d["stage5_rounds_reverted"] == 1 and d["stage5_rounds_kept_points"] == 1
     assert res.stage_results["stage5"] is not res.stage_results["stage4"]
     assert d["stage5_marker_fit_mm"] <= d["stage4_marker_fit_mm"]
-    assert d["stage4_marker_fit_mm"] < 50.0  # the kept result still fits (the 10 cm shift would not)
 
 
 def test_screening_budget_caps_only_the_hypotheses(full_session):
