@@ -446,10 +446,10 @@ def solve(
             fit = marker_fit_error(model, mk, vis, current, current_att, up, config.ik.marker_offset_m)
             if fit > current_fit:
                 # Beyond the paper: a round that explains the markers worse than its start failed (a
-                # seed-1 turn: fit 9.7 -> 11.2 mm, MPJPE 14.9 -> 24.0 mm); keep its start.
+                # seed-1 turn: fit 9.7 -> 11.2 mm, MPJPE 14.9 -> 24.0 mm).  Its new points are what
+                # failed: the IK alone on the start's points, kept if it fits, still takes out Stage
+                # 4's robust-kernel jitter (the turn: 14.9 mm / 109 mm/s at Stage 4 -> 9.6 / 36).
                 diag["stage5_rounds_reverted"] = diag.get("stage5_rounds_reverted", 0) + 1
-                # Its new points are what failed: the IK alone on the start's points still takes out
-                # Stage 4's robust-kernel jitter (the turn: MPJVE 109 mm/s kept at Stage 4).
                 current, current_att = refine(start, start_att, mk, vis)
                 fit = marker_fit_error(model, mk, vis, current, current_att, up, config.ik.marker_offset_m)
                 if fit > current_fit:
