@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from uuomocap.solver_core.body_params import apply_root_offset, fill_nan_rows, pose_body, yaw_matrix
-from uuomocap.solver_core.chamfer import gather_points, nearest_indices
+from uuomocap.solver_core.chamfer import NearestTargetCache, gather_points, nearest_indices
 from uuomocap.solver_core.pose_fitting import chamfer_to_body
 from uuomocap.solver_core.optimization import LBFGSConfig, run_lbfgs
 from uuomocap.solver_core.regularizers import DISTANCE_UNIT_M
@@ -441,9 +441,10 @@ def _refine_candidate(model, mk, vis, root, body_pose, shape_prior, up, vid, yaw
     trans = trans0.detach().clone().requires_grad_(True)
     betas = shape_prior.detach().clone().float().requires_grad_(True)
     mk_u = mk / unit
+    cache = NearestTargetCache()
 
     def loss() -> torch.Tensor:
-        cham, _ = chamfer_to_body(model, mk_u, vis, root, body_pose, trans, betas, yaw, up, vid, unit, None, tilt)
+        cham, _ = chamfer_to_body(model, mk_u, vis, root, body_pose, trans, betas, yaw, up, vid, unit, None, tilt, cache)
         shape = ((betas - shape_prior) ** 2).mean()
         return config.chamfer_weight * cham + config.shape_weight * shape
 

@@ -21,7 +21,7 @@ import torch
 
 from uuomocap.solver_core.body_params import BodyParams, FreeParameters, apply_root_offset, pose_body, tilt_matrix
 from uuomocap.solver_core import lbs
-from uuomocap.solver_core.chamfer import nearest_indices, vertex_face_table
+from uuomocap.solver_core.chamfer import NearestTargetCache, nearest_indices, vertex_face_table
 from uuomocap.solver_core.mesh import closest_point_on_triangles
 from uuomocap.solver_core.optimization import LBFGSConfig, OptimizationReport, run_lbfgs
 from uuomocap.solver_core.regularizers import DISTANCE_UNIT_M, pose_prior_energy, shape_prior_energy, temporal_smoothness_energy
@@ -106,15 +106,18 @@ def fit_pose(
     if config.data_term not in ("surface", "vertex"):
         raise ValueError(f"data_term must be 'surface' or 'vertex', got {config.data_term!r}")
     table = vertex_face_table(model.faces, model.v_template.shape[0]) if config.data_term == "surface" else None
+    # every evaluation's nearest-vertex search, exact, without a full search each time
+    cache = NearestTargetCache()
 
     def energy() -> torch.Tensor:
         offset = tilt_matrix(tilt, up) if tilt.requires_grad else None
         if table is None:
-            cham, joints = chamfer_to_body(model, markers_u, visible, root, body, trans, betas, yaw, up, targets, unit, robust, offset)
+            cham, joints = chamfer_to_body(model, markers_u, visible, root, body, trans, betas, yaw, up, targets, unit, robust, offset,
+                                           cache)
         else:
             cham, joints = surface_chamfer_to_body(
                 model, markers_u, visible, root, body, trans, betas, yaw, up, targets, table, unit,
-                config.marker_offset_m / unit, robust, offset,
+                config.marker_offset_m / unit, robust, offset, cache,
             )
         if offset is not None:
             cham = cham + config.tilt_weight * (tilt**2).sum()
@@ -147,6 +150,7 @@ def chamfer_to_body(
     unit: float,
     robust_scale: float | None = None,
     root_offset: torch.Tensor | None = None,
+    nearest_cache: NearestTargetCache | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Unidirectional chamfer (paper Eq. chamfer_unidirectional) from markers to posed target vertices.
 
@@ -158,7 +162,8 @@ def chamfer_to_body(
     """
     with torch.no_grad():
         full = pose_body(model, root, body, trans, betas, yaw, up, lbs.SurfacePoints.from_vertex_ids(target_vertex_ids), root_offset)
-        idx_local = nearest_indices(markers_u, full.vertices / unit)  # (T,M) into target_vertex_ids
+        search = nearest_indices if nearest_cache is None else nearest_cache.nearest
+        idx_local = search(markers_u, full.vertices / unit)  # (T,M) into target_vertex_ids
         used, inverse = torch.unique(idx_local, return_inverse=True)
     sub = pose_body(model, root, body, trans, betas, yaw, up, lbs.SurfacePoints.from_vertex_ids(target_vertex_ids[used]), root_offset)
     nearest = torch.gather(sub.vertices / unit, 1, inverse.unsqueeze(-1).expand(-1, -1, 3))
@@ -186,6 +191,7 @@ def surface_chamfer_to_body(
     offset_u: float,
     robust_scale: float | None = None,
     root_offset: torch.Tensor | None = None,
+    nearest_cache: NearestTargetCache | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Marker-to-surface data term: mean over visible markers of || m - (q + offset n) ||^2 with q
     the closest point of the faces around the marker's nearest target vertex and n that face's
@@ -198,7 +204,8 @@ def surface_chamfer_to_body(
     with torch.no_grad():
         allv = pose_body(model, root, body, trans, betas, yaw, up, None, root_offset).vertices / unit  # (T,N,3)
         tgt = allv if target_vertex_ids.numel() == allv.shape[1] else allv[:, target_vertex_ids]
-        nearest = target_vertex_ids[nearest_indices(mk, tgt)]  # (T,M) vertex ids
+        search = nearest_indices if nearest_cache is None else nearest_cache.nearest
+        nearest = target_vertex_ids[search(mk, tgt)]  # (T,M) vertex ids
         cand = vertex_faces[nearest]  # (T,M,K) face ids
         corner_ids = model.faces[cand]  # (T,M,K,3)
         t_idx = torch.arange(frames)[:, None, None, None]

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from uuomocap.solver_core.chamfer import nearest_indices, unidirectional_chamfer
+from uuomocap.solver_core.chamfer import NearestTargetCache, nearest_indices, unidirectional_chamfer
 from uuomocap.solver_core.prior_preparation import (
     BodyPrior,
     camera_to_world_rotation,
@@ -76,6 +76,32 @@ def test_chunked_chamfer_matches_brute_force():
     assert torch.allclose(value, expected, atol=1e-6)
     value.backward()
     assert targets.grad is not None and targets.grad.abs().sum() > 0
+
+
+def test_nearest_target_cache_matches_a_full_search_while_targets_move():
+    """The shortlist answers exactly what a full search answers, small steps and large jumps alike,
+    and searches in full only the frames whose targets moved too far."""
+    gen = torch.Generator().manual_seed(1)
+    points = torch.randn(6, 9, 3, generator=gen)
+    points[2, 3] = float("nan")  # a missing marker: index as the full search gives it
+    targets = torch.randn(6, 400, 3, generator=gen)
+    cache = NearestTargetCache(shortlist=8, max_elements=900)
+    full_searches = []
+    for step in range(40):
+        # mostly small drifts (an optimiser's evaluations), every 10th a large jump of one frame
+        targets = targets + 0.002 * torch.randn(targets.shape, generator=gen)
+        if step % 10 == 9:
+            targets[step % 6] += 0.5 * torch.randn(400, 3, generator=gen)
+        assert torch.equal(cache.nearest(points, targets), nearest_indices(points, targets))
+        full_searches.append(cache.full_searches)
+    assert full_searches[0] == 6  # the first call builds every frame
+    assert cache.full_searches < 6 * 40 // 4  # most calls answered from the shortlists
+    assert full_searches[9] > full_searches[8]  # the jump was noticed
+    moved = points.clone()
+    moved[0, 0] += 1.0  # new points: every shortlist is rebuilt
+    before = cache.full_searches
+    assert torch.equal(cache.nearest(moved, targets), nearest_indices(moved, targets))
+    assert cache.full_searches == before + 6
 
 
 def test_prior_fill_world_axes_and_resampling():
