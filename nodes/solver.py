@@ -122,6 +122,10 @@ class Solver(Node):
         self._publish(self.solver.flush())
         self.end_stream("solved")
 
+    def teardown(self) -> None:
+        if self.solver is not None:
+            self.solver.close()  # a lock upgrade still running on its worker thread stops at its next step
+
     def _labels(self) -> tuple:
         """(faces, bary, parts) of the current correspondence; the part names (~0.4 ms) are only
         recomputed when the correspondence changed."""

@@ -35,6 +35,7 @@ config and the rate, nothing grows with the take.
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections import deque
 from itertools import chain
@@ -61,10 +62,41 @@ from uuomocap.solver_core.prior_preparation import (
     neutral_prior,
     prepare_prior,
 )
-from uuomocap.solver_core.staged_solver import SolverConfig, marker_part_names, part_vertex_ids, preload_lazy_imports, solve
+from uuomocap.solver_core.staged_solver import (
+    SolverConfig,
+    SolverProgress,
+    marker_part_names,
+    part_vertex_ids,
+    preload_lazy_imports,
+    solve,
+)
 
 N_POSE = 72  # root (before the yaw) + 23 body joints, axis-angle
 N_PARAMS = N_POSE + 3  # + translation
+
+
+class UpgradeCancelled(RuntimeError):
+    """A background lock upgrade stopped because its result can no longer be used."""
+
+
+class _StopWhenStale(SolverProgress):
+    """Progress hook of a background lock upgrade: raises ``UpgradeCancelled`` at the solver's next
+    stage or optimiser step once the job is cancelled (end of take) or its lock was superseded
+    (re-bootstrap, reset).  Without it a dead upgrade keeps a core busy for its whole solve
+    (~30-40 s), e.g. beside the next take's bootstrap."""
+
+    def __init__(self, solver: "WindowedSolver", job: dict):
+        self._solver, self._job = solver, job
+
+    def _check(self) -> None:
+        if self._job["cancel"].is_set() or self._solver._lock_generation != self._job["generation"]:
+            raise UpgradeCancelled("lock upgrade cancelled: its take ended or its lock was replaced")
+
+    def stage_start(self, name: str, detail: str = "") -> None:
+        self._check()
+
+    def stage_step(self, name: str, iterations: int, loss: float) -> None:
+        self._check()
 
 
 def fast_bootstrap_config() -> SolverConfig:
@@ -469,6 +501,7 @@ class WindowedSolver:
         self._locked_span = 0  # frames the current lock was estimated from
         # bumped by every (re-)bootstrap and reset: a background upgrade of an older lock is dropped
         self._lock_generation = getattr(self, "_lock_generation", 0) + 1
+        self.cancel_upgrade()  # a running upgrade belongs to the old lock
         self._upgrade_job = None  # (future, inputs) of a background upgrade
         self._executor = getattr(self, "_executor", None)
 
@@ -543,11 +576,25 @@ class WindowedSolver:
     def flush(self) -> list[WindowResult]:
         """End of stream: bootstrap on what is there if never locked, then finalise every frame."""
         out: list[WindowResult] = []
+        self.cancel_upgrade()  # its lock could only serve frames that are final now
         if not self.locked and self._boot:
             out += self._bootstrap(list(self._boot), rebootstrap=False)
         while self._pending:
             out += self._refine(min(len(self._pending), self.config.lag_frames + self.config.hop_frames), final=True)
         return out
+
+    def cancel_upgrade(self) -> None:
+        """Stop a background lock upgrade at its next optimiser step (its result is dropped)."""
+        job = getattr(self, "_upgrade_job", None)
+        if job is not None:
+            job[1]["cancel"].set()
+
+    def close(self) -> None:
+        """Cancel a running upgrade and release the worker thread (the solver stays usable)."""
+        self.cancel_upgrade()
+        if self._executor is not None:
+            self._executor.shutdown(wait=False)
+            self._executor = None
 
     @property
     def labels(self) -> MarkerLabelState | None:
@@ -1151,6 +1198,9 @@ class WindowedSolver:
             self._upgrade_job = None
             try:
                 res = future.result()
+            except UpgradeCancelled:
+                self.stats["upgrades_cancelled"] = self.stats.get("upgrades_cancelled", 0) + 1
+                return
             except (ValueError, RuntimeError) as exc:  # e.g. no usable frame: keep the current lock
                 self.stats["upgrade_errors"] = self.stats.get("upgrade_errors", 0) + 1
                 self.stats["last_upgrade_error"] = str(exc)
@@ -1168,7 +1218,8 @@ class WindowedSolver:
                           "world")
         return {"markers": np.stack([f.markers for f in frames]), "visible": np.stack([f.visible for f in frames]),
                 "prior": prior, "shape": shape,
-                "generation": self._lock_generation, "t0": time.perf_counter(), "stride": self._reservoir_stride,
+                "generation": self._lock_generation, "cancel": threading.Event(), "t0": time.perf_counter(),
+                "stride": self._reservoir_stride,
                 "frames": frames}
 
     def _solve_upgrade(self, job: dict):
@@ -1187,7 +1238,7 @@ class WindowedSolver:
                       pose_fitting=replace(base.pose_fitting, smoothness_weight=0.0),
                       screening_frames=screening, chamfer_frames=n)
         return solve(job["markers"], job["visible"], self.rate_hz or 120.0, self.up_axis, job["prior"], job["shape"],
-                     self.model, self.chamfer_model, cfg)
+                     self.model, self.chamfer_model, cfg, progress=_StopWhenStale(self, job))
 
     def _finish_upgrade(self, res, job: dict) -> None:
         """Adopt the upgrade's shape, yaw, tilt and correspondence when it explains the reservoir's

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from uuomocap.solver_core.windowed_solver import WindowedSolver, WindowedSolverConfig, right_jacobian_so3
+from uuomocap.solver_core.windowed_solver import UpgradeCancelled, WindowedSolver, WindowedSolverConfig, right_jacobian_so3
 
 
 @pytest.fixture(scope="module")
@@ -269,15 +269,24 @@ def test_lock_upgrade_on_the_reservoir_repairs_a_wrong_lock(streamed):
     b._poll_upgrade()
     assert b._upgrade_job is None and b.labels_version == version + 1
     np.testing.assert_array_equal(b.face_ids, s.face_ids)
-    # a re-bootstrap meanwhile makes a running upgrade stale: dropped, not adopted
+    # a re-bootstrap meanwhile makes a running upgrade stale: it stops at its next optimiser step
+    # (instead of keeping a core busy for its whole solve) and is not adopted
     c = _mislocked_clone(streamed)
-    # (only the job's staleness matters here: the bootstrap's short budgets, ~25 s less)
-    c.config = replace(c.config, upgrade_in_background=True, upgrade_solver=None)
+    c.config = replace(c.config, upgrade_in_background=True)
     c._upgrade_lock()
     c._lock_generation += 1
-    c._upgrade_job[0].result(timeout=120)
+    assert isinstance(c._upgrade_job[0].exception(timeout=120), UpgradeCancelled)
     c._poll_upgrade()
-    assert c.stats["upgrades_rejected"] == 1 and c.labels_version == version
+    assert c.stats["upgrades_cancelled"] == 1 and c._upgrade_job is None and c.labels_version == version
+    # the end of the take (flush) cancels it too: every frame is final, its lock has nothing left to serve
+    d = _mislocked_clone(streamed)
+    d.config = replace(d.config, upgrade_in_background=True)
+    d._upgrade_lock()
+    future = d._upgrade_job[0]
+    d.flush()
+    assert isinstance(future.exception(timeout=120), UpgradeCancelled)
+    assert d.labels_version == version
+    d.close()
 
 
 def test_reservoir_stays_bounded_and_spread_over_a_long_take(streamed):
