@@ -158,7 +158,8 @@ def chamfer_to_body(
     joints (T,24,3) metres).  The nearest vertex of every marker is found on a gradient-free
     skinning of the targets; then only the vertices that are somebody's nearest neighbour are
     skinned again with gradient (subset evaluation) - the same value and gradient as skinning the
-    whole mesh, at a fraction of the cost.
+    whole mesh, at a fraction of the cost.  nearest_cache: a ``NearestTargetCache`` shared by one
+    optimisation's evaluations (same answers as the full search; None = full search every call).
     """
     with torch.no_grad():
         full = pose_body(model, root, body, trans, betas, yaw, up, lbs.SurfacePoints.from_vertex_ids(target_vertex_ids), root_offset)
@@ -198,6 +199,7 @@ def surface_chamfer_to_body(
     normal.  markers_u (T,M,3) in ``unit``; vertex_faces from ``vertex_face_table``.
     Returns (energy in unit^2, joints (T,24,3) metres).  Face choice and barycentrics are found
     without gradient; the chosen faces' corners are skinned with gradient (subset evaluation).
+    nearest_cache: as in ``chamfer_to_body``.
     """
     frames = markers_u.shape[0]
     mk = torch.nan_to_num(markers_u)
