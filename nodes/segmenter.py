@@ -22,7 +22,7 @@ from .base import Node, Port
 @dataclass(frozen=True)
 class SegmenterConfig:
     body_model: str = "open-low"
-    window_s: float = 2.5  # seconds of markers the labels are computed on
+    window_s: float = 3.0  # seconds of markers the labels are computed on
     rate_hz: float = 30.0  # the window is decimated to this rate (paper: 30 Hz markers)
     update_s: float = 0.0  # re-label this often on the latest window (0 = once)
     threads: int = 1

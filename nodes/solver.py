@@ -25,7 +25,7 @@ from .base import Node, Port
 @dataclass(frozen=True)
 class SolverNodeConfig:
     body_model: str = "open-low"  # open-low, open-full, or a SMPL .pkl/.npz path
-    bootstrap_s: float = 2.5  # seconds of markers (+ prior) for the offline bootstrap
+    bootstrap_s: float = 3.0  # seconds of markers (+ prior) for the offline bootstrap
     lag_frames: int = 10  # fixed lag of the refined output
     hop_frames: int = 10  # frames finalised per smoothing pass (10: ~1/3 less smoothing work per frame than 5)
     defer_refine_hops: int = 2  # while frames queue up, smoothing waits for up to this many hops, then runs one pass per frame

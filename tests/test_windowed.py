@@ -36,7 +36,8 @@ def streamed(session):
     torch.set_num_threads(1)
     md, rows, up_axis, body_model, gt = session_stream(session)
     model, chamfer = load_models(body_model)
-    cfg = replace(WindowedSolverConfig(), bootstrap_s=2.0, recheck_period_s=1.0, recheck_frames=24)
+    # no lock upgrade inside the stream (the 4 s take would reach the first one): tests start them
+    cfg = replace(WindowedSolverConfig(), bootstrap_s=2.0, recheck_period_s=1.0, recheck_frames=24, upgrade_growth=2.0)
     solver = WindowedSolver(model, cfg, up_axis, md.rate_hz, chamfer)
     results, pi = [], 0
     for i in range(md.positions.shape[0]):
@@ -260,6 +261,22 @@ def test_lock_upgrade_on_the_reservoir_repairs_a_wrong_lock(streamed):
     print(f"\nattachment error {before:.1f} -> {after:.1f} mm")
     assert s.labels_version == version + 1
     assert after < before, (before, after)
+    upgraded_faces = s.face_ids.copy()
+    # the frames in the recent window were estimated under the old lock: a re-check on them would
+    # pull the points back towards the old ones, so none runs until a window of frames was
+    # estimated under the new lock; then it runs and keeps the repair
+    md, rows = streamed["md"], streamed["rows"]
+    n = md.positions.shape[0]
+    order = np.concatenate([np.arange(n - 1, 0, -1), np.arange(n)])
+    checks = s.stats["rechecks"]
+    s._since_recheck = 10**6  # a re-check is due by the period
+    for step, (st, j, prior) in enumerate(_frames(md, rows, 0, s.config.recheck_frames + 2, int(md.stamps_ns[-1]), order)):
+        s.add_prior(*prior)
+        s.add_markers(st, md.positions[j], md.visible[j])
+        if step + 1 < s.config.recheck_frames:
+            assert s.stats["rechecks"] == checks, step
+    assert s.stats["rechecks"] == checks + 1
+    assert _attach_error_mm(s, streamed["gt"], streamed["model"]) < before
     # on a worker thread (live streams): same result, adopted at the first frame after it is ready
     b = _mislocked_clone(streamed)
     b.config = replace(b.config, upgrade_in_background=True)
@@ -268,7 +285,7 @@ def test_lock_upgrade_on_the_reservoir_repairs_a_wrong_lock(streamed):
     b._upgrade_job[0].result(timeout=120)
     b._poll_upgrade()
     assert b._upgrade_job is None and b.labels_version == version + 1
-    np.testing.assert_array_equal(b.face_ids, s.face_ids)
+    np.testing.assert_array_equal(b.face_ids, upgraded_faces)
     # a re-bootstrap meanwhile makes a running upgrade stale: it stops at its next optimiser step
     # (instead of keeping a core busy for its whole solve) and is not adopted
     c = _mislocked_clone(streamed)
