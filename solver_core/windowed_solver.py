@@ -1272,13 +1272,22 @@ class WindowedSolver:
         if job["generation"] != self._lock_generation:
             self.stats["upgrades_rejected"] = self.stats.get("upgrades_rejected", 0) + 1
             return
+        new = self._lock_from(res)
+        if not self._same_part(new[5], self.allowed_ids):
+            # An upgrade refines the lock; it does not move the markers to another body part (or
+            # between full and partial body): a still leg's mirror image fits its markers as well
+            # as the leg itself (session 9: an 8 s arms take with left-leg markers, the second upgrade
+            # moved them to the right leg on a better fit, 2.10 -> 1.64 mm).  The bootstrap decided
+            # the part with all its hypotheses; a wrong part degrades the fit and re-bootstraps.
+            self.stats["upgrades_rejected"] = self.stats.get("upgrades_rejected", 0) + 1
+            self.stats["upgrades_other_part"] = self.stats.get("upgrades_other_part", 0) + 1
+            return
         frames = job["frames"]
         theta = np.stack([f.theta for f in frames])
         trans = np.stack([f.trans for f in frames])
         prior = np.stack([f.prior for f in frames])
         current = self._reservoir_fit(job, theta, trans, prior)
         old = tuple(getattr(self, name) for name in self._LOCK_FIELDS)
-        new = self._lock_from(res)
         self._set_lock(new)
         # same world poses and priors, expressed under the candidate's yaw and camera tilt
         theta_new = theta.copy()
@@ -1293,6 +1302,13 @@ class WindowedSolver:
         old_yaw = self.yaw
         self._adopt_lock(res)
         self._reyaw_in_flight(old_yaw)
+
+    @staticmethod
+    def _same_part(a, b) -> bool:
+        """Whether two locks' allowed vertex ids (None = full body) name the same body part."""
+        if a is None or b is None:
+            return a is None and b is None
+        return np.array_equal(np.sort(np.asarray(a)), np.sort(np.asarray(b)))
 
     def _reservoir_fit(self, job: dict, theta: np.ndarray, trans: np.ndarray, prior: np.ndarray) -> float:
         """Mean marker residual (metres) of the reservoir frames re-solved per frame under the

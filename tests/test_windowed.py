@@ -365,3 +365,20 @@ def test_recheck_keeps_a_good_lock(streamed):
     s._prepare_lock()
     s._recheck()
     assert s.face_ids[wrong] != faces[far] and s.labels_version > version
+
+
+def test_lock_upgrade_keeps_the_body_part(streamed):
+    """An upgrade refines the lock, it does not move the markers to another part: a lock on a
+    partial body (here: the streamed full-body lock relabelled as a left leg) refuses an upgrade
+    whose solve decided otherwise (full body), and keeps its points."""
+    from uuomocap.solver_core.staged_solver import part_vertex_ids
+
+    s = _mislocked_clone(streamed)
+    model = streamed["model"]
+    leg = tuple(model.joint_names.index(n) for n in ("left_hip", "left_knee", "left_ankle"))
+    s.allowed_ids = part_vertex_ids(model, leg)
+    faces, version = s.face_ids.copy(), s.labels_version
+    s._upgrade_lock()
+    assert s.stats["upgrades"] == 1 and s.stats["upgrades_other_part"] == 1 and s.stats["upgrades_rejected"] == 1
+    np.testing.assert_array_equal(s.face_ids, faces)
+    assert s.labels_version == version
