@@ -107,7 +107,7 @@ def fast_bootstrap_config() -> SolverConfig:
         c,
         screening_frames=20,
         chamfer_frames=60,
-        # The two best-registered yaws only (the lock upgrades screen all four): on 7 sessions the
+        # The two best-registered yaws only (the lock upgrades screen only the best one): on 7 sessions the
         # winner was the best-registered one 6 times and tied with the second once; 4 hypotheses
         # cost the jump 5.5 s of its 11.7 s bootstrap.
         max_hypotheses=2,
@@ -1278,7 +1278,7 @@ class WindowedSolver:
             # between full and partial body): a still leg's mirror image fits its markers as well
             # as the leg itself (session 9: an 8 s arms take with left-leg markers, the second upgrade
             # moved them to the right leg on a better fit, 2.10 -> 1.64 mm).  The bootstrap decided
-            # the part with all its hypotheses; a wrong part degrades the fit and re-bootstraps.
+            # the part with its hypotheses; a wrong part degrades the fit and re-bootstraps.
             self.stats["upgrades_rejected"] = self.stats.get("upgrades_rejected", 0) + 1
             self.stats["upgrades_other_part"] = self.stats.get("upgrades_other_part", 0) + 1
             return
