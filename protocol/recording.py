@@ -327,7 +327,9 @@ def export_solved_npz(frames, path: str | Path, method: str = "stream", stage_se
     """Write SolvedFrames as OUT.npz (AMASS layout, see the brief); returns a small summary.
 
     betas and the marker labels come from the last frame (the solver's latest shape and
-    assignment); ``frame_kind`` says per frame whether a refined answer existed.
+    assignment); ``frame_betas`` (F, B) is the shape each frame was solved under (a lock upgrade
+    changes it mid-take; pose a frame with its own row); ``frame_kind`` says per frame whether a
+    refined answer existed.
     """
     frames = best_solved_frames(frames)
     if not frames:
@@ -340,6 +342,7 @@ def export_solved_npz(frames, path: str | Path, method: str = "stream", stage_se
     M = 0 if last.marker_faces is None else len(last.marker_faces)
     out = {
         "betas": np.asarray(last.betas),
+        "frame_betas": np.stack([np.asarray(f.betas) for f in frames]),
         "poses": np.stack([f.poses for f in frames]),
         "trans": np.stack([f.trans for f in frames]),
         "mocap_framerate": np.array(float(rate)),

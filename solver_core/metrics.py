@@ -192,15 +192,19 @@ def check_part(pred_marker_parts, part: str, part_joints: dict, joint_names, par
 
 
 def posed_vertices(model, betas: np.ndarray, poses: np.ndarray, trans: np.ndarray, chunk: int = 128) -> np.ndarray:
-    """World vertices (F, N, 3) float64 for AMASS-layout parameters, evaluated in chunks."""
+    """World vertices (F, N, 3) float64 for AMASS-layout parameters, evaluated in chunks.
+    betas: (B,) one shape for every frame, or (F, B) a shape per frame."""
     import torch
 
     from .lbs import forward
 
-    b = torch.as_tensor(np.asarray(betas, dtype=np.float32)).reshape(1, -1)
+    b_all = np.asarray(betas, dtype=np.float32)
+    if b_all.ndim == 2 and b_all.shape[0] != poses.shape[0]:
+        raise ValueError(f"per-frame betas have {b_all.shape[0]} rows for {poses.shape[0]} frames")
     outs = []
     with torch.no_grad():
         for s in range(0, poses.shape[0], chunk):
+            b = torch.as_tensor(b_all[s:s + chunk] if b_all.ndim == 2 else b_all.reshape(1, -1))
             o = forward(model, b, torch.as_tensor(np.asarray(poses[s:s + chunk], dtype=np.float32)),
                         torch.as_tensor(np.asarray(trans[s:s + chunk], dtype=np.float32)))
             outs.append(o.vertices.double().numpy())
@@ -228,7 +232,8 @@ def evaluate(pred: dict, gt: dict, model, pred_model=None, markers: np.ndarray |
              part: str | None = None, with_gt_m2s: bool = True) -> dict:
     """All metrics for one prediction against ground truth.
 
-    pred / gt: AMASS-layout dicts (betas, poses (F,72), trans (F,3), joints (F,24,3); gt also
+    pred / gt: AMASS-layout dicts (betas, poses (F,72), trans (F,3), joints (F,24,3); pred optionally
+    frame_betas (F,B), the shape each frame was solved under (streamed solves); gt also
     mocap_framerate and the true marker attachment marker_faces/marker_bary; pred optionally
     marker_parts / marker_faces / marker_bary).  model: the ground truth's body model;
     pred_model: the prediction's (default: the same).  markers: (F, M, 3) metres, NaN where
@@ -248,7 +253,10 @@ def evaluate(pred: dict, gt: dict, model, pred_model=None, markers: np.ndarray |
     res["mpjpe"] = mpjpe(pj, gj)
     res["pa_mpjpe"] = pa_mpjpe(pj, gj)
     res["mpjve"] = mpjve(pj, gj, rate)
-    pv = posed_vertices(pred_model, pred["betas"], np.asarray(pred["poses"]), np.asarray(pred["trans"]))
+    # A streamed solve may change its shape mid-take (a lock upgrade): each frame was solved under
+    # its own betas (frame_betas), the AMASS betas key holds only the last one.
+    pred_betas = pred["frame_betas"] if "frame_betas" in pred else pred["betas"]
+    pv = posed_vertices(pred_model, pred_betas, np.asarray(pred["poses"]), np.asarray(pred["trans"]))
     gv = posed_vertices(model, gt["betas"], np.asarray(gt["poses"]), np.asarray(gt["trans"]))
     res["v2v"] = v2v(pv, gv) if pv.shape == gv.shape else float("nan")
 

@@ -104,6 +104,29 @@ def test_ground_truth_against_itself(session, model, tmp_path):
     assert res["markers"] == 30  # ghost tracks are excluded
 
 
+def test_per_frame_betas_pose_each_frame_with_its_own_shape(session, model, tmp_path):
+    """A streamed solve's shape changes mid-take (lock upgrades): V2V must pose every frame with
+    the betas it was solved under (frame_betas), not with the last one."""
+    from uuomocap.methods import METHODS
+    from uuomocap.protocol.session import load_session, read_npz
+
+    out = tmp_path / "gt_out.npz"
+    METHODS["gt"](session, out, "open-low")
+    s = load_session(session)
+    pred = read_npz(out)
+    F = pred["poses"].shape[0]
+    true_b, wrong_b = np.asarray(pred["betas"]), np.asarray(pred["betas"]) + np.eye(len(pred["betas"]))[0]
+    all_wrong = metrics.evaluate({**pred, "betas": wrong_b}, s.gt, model)["v2v"]
+    assert all_wrong > 5.0
+    per_frame = np.tile(true_b, (F, 1))
+    assert metrics.evaluate({**pred, "betas": wrong_b, "frame_betas": per_frame}, s.gt, model)["v2v"] == pytest.approx(0.0, abs=1e-3)
+    per_frame[F // 2:] = wrong_b  # the second half solved under the other shape: half the error
+    half = metrics.evaluate({**pred, "betas": wrong_b, "frame_betas": per_frame}, s.gt, model)["v2v"]
+    assert half == pytest.approx(all_wrong * (F - F // 2) / F, rel=1e-4)
+    with pytest.raises(ValueError, match="per-frame betas"):
+        metrics.evaluate({**pred, "frame_betas": per_frame[:-1]}, s.gt, model)
+
+
 def test_eval_cli_reports_a_known_offset(session, tmp_path, capsys):
     from uuomocap.cli import main
     from uuomocap.methods import METHODS
@@ -135,6 +158,13 @@ def test_eval_cli_one_line_errors(session, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "missing key" in err and "Traceback" not in err
     assert main(["eval", "--pred", str(tmp_path / "none.npz"), "--gt", str(session / "gt.npz")]) == 2
+    capsys.readouterr()
+    nanb = tmp_path / "nan_betas.npz"
+    np.savez(nanb, betas=np.zeros(16), poses=np.zeros((60, 72)), trans=np.zeros((60, 3)), joints=np.zeros((60, 24, 3)),
+             frame_betas=np.full((60, 16), np.nan))
+    assert main(["eval", "--pred", str(nanb), "--gt", str(session / "gt.npz")]) == 2
+    err = capsys.readouterr().err
+    assert "frame_betas contains NaN" in err and "Traceback" not in err
 
 
 @pytest.mark.slow

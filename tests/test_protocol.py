@@ -323,6 +323,9 @@ def test_solved_export_layout_prefers_refined_and_is_deterministic(tmp_path):
         assert float(z["mocap_framerate"]) == 120.0 and str(z["method"]) == "stream" and str(z["body_model"]) == "open-low"
         assert z["frame_kind"].tolist() == ["refined"] * 8 + ["estimate"] * 2
         assert np.array_equal(z["poses"][3], frames[13].poses)
+        # each frame keeps the shape it was solved under (a lock upgrade changes it mid-take)
+        assert z["frame_betas"].shape == (10, 16) and np.array_equal(z["frame_betas"][3], frames[13].betas)
+        assert np.array_equal(z["frame_betas"][9], frames[-1].betas) and np.array_equal(z["betas"], frames[-1].betas)
 
 
 def test_config_parsing_names_the_problem():

@@ -89,6 +89,8 @@ def stream_solve(session_dir: Path, body_model: str | None = None, config=None, 
     T = md.positions.shape[0] if max_frames is None else min(max_frames, md.positions.shape[0])
     est = {"poses": np.full((T, 72), np.nan), "trans": np.full((T, 3), np.nan), "joints": np.full((T, 24, 3), np.nan)}
     ref = {k: v.copy() for k, v in est.items()}
+    # the shape each refined frame was solved under (a lock upgrade changes it mid-take)
+    ref["betas"] = np.full((T, model.num_betas), np.nan)
     lat_e, lat_r = np.full(T, np.nan), np.full(T, np.nan)
     arrival = np.full(T, np.nan)
     stamps = np.asarray(md.stamps_ns[:T], dtype=np.int64)
@@ -99,6 +101,8 @@ def stream_solve(session_dir: Path, body_model: str | None = None, config=None, 
             d = est if r.kind == "estimate" else ref
             i = r.frame_index
             d["poses"][i], d["trans"][i], d["joints"][i] = r.poses, r.trans, r.joints
+            if r.kind == "refined":
+                d["betas"][i] = r.betas
             if not np.isnan(arrival[i]):
                 (lat_e if r.kind == "estimate" else lat_r)[i] = 1000.0 * (now - arrival[i])
 
@@ -161,6 +165,7 @@ def uuo_window(session_dir: Path, out_npz: Path, body_model: str | None = None, 
     M = md.positions.shape[1]
     out = {
         "betas": run.betas,
+        "frame_betas": run.refined["betas"],
         "poses": run.refined["poses"],
         "trans": run.refined["trans"],
         "mocap_framerate": np.float64(run.rate_hz),

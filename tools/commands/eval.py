@@ -55,6 +55,12 @@ def evaluate_paths(pred_path: Path, gt_path: Path, markers_path: Path | None = N
     if np.asarray(pred["poses"]).shape[1:] != (72,) or np.asarray(pred["joints"]).shape[1:] != (24, 3):
         raise UserError(f"{pred_path}: poses {np.asarray(pred['poses']).shape} / joints {np.asarray(pred['joints']).shape} "
                         f"must be (F, 72) / (F, 24, 3)")
+    if "frame_betas" in pred:
+        fb = np.asarray(pred["frame_betas"], dtype=np.float64)
+        if fb.ndim != 2 or fb.shape[0] != np.asarray(pred["poses"]).shape[0]:
+            raise UserError(f"{pred_path}: frame_betas {fb.shape} must be (F, B) with F = {np.asarray(pred['poses']).shape[0]} frames")
+        if not np.isfinite(fb).all():
+            raise UserError(f"{pred_path}: frame_betas contains NaN or inf")
     gt_model_name = str(gt["body_model"])
     model = _load_model(gt_model_name, str(gt_path))
     pred_model_name = str(pred["body_model"]) if "body_model" in pred else gt_model_name
