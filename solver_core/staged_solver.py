@@ -81,6 +81,9 @@ class SolverConfig:
     merge_hypotheses_deg: float = 20.0
     # Beyond the paper (speed): screen only this many of them, best registration first (None = all).
     max_hypotheses: int | None = None
+    # ...plus any further hypothesis whose registration energy is within this ratio of the best
+    # (an ambiguous registration gets a second opinion; None = max_hypotheses alone decides).
+    close_hypothesis_ratio: float | None = None
     # Beyond the paper (speed): frames on which each hypothesis goes through Stages 2-4.
     screening_frames: int = 60
     # Beyond the paper (speed): Stage 2 and Stage 4 settings while screening the hypotheses
@@ -308,7 +311,8 @@ def solve(
     # large torso surface over the arm the markers are on; after IK the true part fits best).
     candidates = [match] + list(match.alternatives)
     hypotheses = [(cand, yaw, tilt) for cand in candidates
-                  for yaw, tilt in _distinct_hypotheses(cand, config.merge_hypotheses_deg)[: config.max_hypotheses if cand is match else 2]]
+                  for yaw, tilt in _screened_hypotheses(_distinct_hypotheses(cand, config.merge_hypotheses_deg),
+                                                        config.max_hypotheses if cand is match else 2, config.close_hypothesis_ratio)]
     screen = _evenly_spaced(data_frames, config.screening_frames)
     screen_t = torch.as_tensor(screen)
     screen_pf = config.screening_pose_fitting or config.pose_fitting
@@ -468,14 +472,24 @@ def solve(
     return _finish(model, current, current_att, diag, seconds, losses, stage_results, up)
 
 
-def _distinct_hypotheses(match: PartMatch, merge_deg: float) -> list[tuple[float, np.ndarray]]:
-    """(yaw, tilt) registered from each start, best first, dropping near-duplicate yaws."""
+def _distinct_hypotheses(match: PartMatch, merge_deg: float) -> list[tuple[float, np.ndarray, float]]:
+    """(yaw, tilt, registration energy) from each start, best first, dropping near-duplicate yaws."""
     ordered = sorted(match.yaw_starts, key=lambda s: s.error)
-    kept: list[tuple[float, np.ndarray]] = []
+    kept: list[tuple[float, np.ndarray, float]] = []
     for s in ordered:
-        if all(angle_difference(s.yaw, k) > math.radians(merge_deg) for k, _ in kept):
-            kept.append((s.yaw, s.tilt))
+        if all(angle_difference(s.yaw, k[0]) > math.radians(merge_deg) for k in kept):
+            kept.append((s.yaw, s.tilt, float(s.error)))
     return kept
+
+
+def _screened_hypotheses(distinct: list, limit: int | None, close_ratio: float | None) -> list[tuple[float, np.ndarray]]:
+    """(yaw, tilt) of the hypotheses Stage 1 screens: the best ``limit`` registrations, plus those
+    within ``close_ratio`` of the best registration energy."""
+    if not distinct:
+        return []
+    best = distinct[0][2]
+    return [(yaw, tilt) for i, (yaw, tilt, energy) in enumerate(distinct)
+            if limit is None or i < limit or (close_ratio is not None and energy <= close_ratio * best)]
 
 
 def _match_diagnostics(model, match: PartMatch) -> dict:

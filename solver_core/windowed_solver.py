@@ -107,10 +107,13 @@ def fast_bootstrap_config() -> SolverConfig:
         c,
         screening_frames=20,
         chamfer_frames=60,
-        # The two best-registered yaws only (the lock upgrades screen only the best one): on 7 sessions the
-        # winner was the best-registered one 6 times and tied with the second once; 4 hypotheses
-        # cost the jump 5.5 s of its 11.7 s bootstrap.
-        max_hypotheses=2,
+        # The best-registered yaw only, unless another registered within 1.5x of its energy (as the
+        # lock upgrades).  On 9 sessions (7 + bench speed's two) the best-registered yaw won every
+        # time and the next distinct one registered 2.0-3.7x worse (the close ones, 20-30 deg away,
+        # converged to the same yaw); the second hypothesis cost ~1.5 s of an 11-12 s bootstrap
+        # (session 7: 4 hypotheses cost the jump 5.5 s of 11.7 s).
+        max_hypotheses=1,
+        close_hypothesis_ratio=1.5,
         # Screening of the yaw hypotheses: 40 iterations, plain squares at Stage 4 (with 40
         # iterations the robust kernel is not converged: 1.4 mm worse at the end).  The winner then
         # gets 100 iterations at Stages 2, 4, 5 and Stage 4's robust kernel as offline: the lock is
