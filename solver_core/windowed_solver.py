@@ -107,8 +107,8 @@ def fast_bootstrap_config() -> SolverConfig:
         c,
         screening_frames=20,
         chamfer_frames=60,
-        # The best-registered yaw only, unless another registered within 1.5x of its energy (as the
-        # lock upgrades).  On 9 sessions (7 + bench speed's two) the best-registered yaw won every
+        # The best-registered yaw only, unless another registered within 1.5x of its energy (the
+        # lock upgrades screen the best one only).  On 9 sessions (7 + bench speed's two) the best-registered yaw won every
         # time and the next distinct one registered 2.0-3.7x worse (the close ones, 20-30 deg away,
         # converged to the same yaw); the second hypothesis cost ~1.5 s of an 11-12 s bootstrap
         # (session 7: 4 hypotheses cost the jump 5.5 s of 11.7 s).
