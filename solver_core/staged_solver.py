@@ -81,9 +81,9 @@ class SolverConfig:
     merge_hypotheses_deg: float = 20.0
     # Beyond the paper (speed): screen only this many of them, best registration first (None = all).
     max_hypotheses: int | None = None
-    # ...plus any further hypothesis whose registration energy is within this ratio of the best
-    # (an ambiguous registration gets a second opinion; None = max_hypotheses alone decides).
-    close_hypothesis_ratio: float | None = None
+    # Beyond the paper (speed): when the next distinct yaw registers more than this many times worse
+    # than the best, the registration is decisive and only the best is screened (None = never).
+    decisive_registration_ratio: float | None = None
     # Beyond the paper (speed): frames on which each hypothesis goes through Stages 2-4.
     screening_frames: int = 60
     # Beyond the paper (speed): Stage 2 and Stage 4 settings while screening the hypotheses
@@ -312,7 +312,7 @@ def solve(
     candidates = [match] + list(match.alternatives)
     hypotheses = [(cand, yaw, tilt) for cand in candidates
                   for yaw, tilt in _screened_hypotheses(_distinct_hypotheses(cand, config.merge_hypotheses_deg),
-                                                        config.max_hypotheses if cand is match else 2, config.close_hypothesis_ratio)]
+                                                        config.max_hypotheses if cand is match else 2, config.decisive_registration_ratio)]
     screen = _evenly_spaced(data_frames, config.screening_frames)
     screen_t = torch.as_tensor(screen)
     screen_pf = config.screening_pose_fitting or config.pose_fitting
@@ -482,14 +482,13 @@ def _distinct_hypotheses(match: PartMatch, merge_deg: float) -> list[tuple[float
     return kept
 
 
-def _screened_hypotheses(distinct: list, limit: int | None, close_ratio: float | None) -> list[tuple[float, np.ndarray]]:
-    """(yaw, tilt) of the hypotheses Stage 1 screens: the best ``limit`` registrations, plus those
-    within ``close_ratio`` of the best registration energy."""
-    if not distinct:
-        return []
-    best = distinct[0][2]
-    return [(yaw, tilt) for i, (yaw, tilt, energy) in enumerate(distinct)
-            if limit is None or i < limit or (close_ratio is not None and energy <= close_ratio * best)]
+def _screened_hypotheses(distinct: list, limit: int | None, decisive_ratio: float | None) -> list[tuple[float, np.ndarray]]:
+    """(yaw, tilt) of the hypotheses Stage 1 screens: the best ``limit`` registrations, or only the
+    best when the next one's registration energy is over ``decisive_ratio`` times the best's."""
+    kept = distinct[:limit]
+    if decisive_ratio is not None and len(kept) > 1 and kept[1][2] > decisive_ratio * kept[0][2]:
+        kept = kept[:1]
+    return [(yaw, tilt) for yaw, tilt, _ in kept]
 
 
 def _match_diagnostics(model, match: PartMatch) -> dict:

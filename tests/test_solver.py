@@ -368,15 +368,16 @@ def test_screening_budget_caps_only_the_hypotheses(full_session):
     assert res.diagnostics["full_body"] is True
 
 
-def test_screened_hypotheses_add_close_registrations_beyond_the_limit():
+def test_a_decisive_registration_screens_one_hypothesis():
     from uuomocap.solver_core.staged_solver import _screened_hypotheses
 
     tilt = np.eye(3)
-    distinct = [(0.1, tilt, 100.0), (2.0, tilt, 140.0), (3.0, tilt, 400.0)]  # best registration first
-    yaws = lambda limit, ratio: [y for y, _ in _screened_hypotheses(distinct, limit, ratio)]  # noqa: E731
-    assert yaws(1, None) == [0.1]
-    assert yaws(1, 1.5) == [0.1, 2.0]          # 140 is within 1.5x of 100: a second opinion
-    assert yaws(1, 1.2) == [0.1]
-    assert yaws(2, 1.5) == [0.1, 2.0]          # 400 is not close
-    assert yaws(None, None) == [0.1, 2.0, 3.0]
-    assert _screened_hypotheses([], 1, 1.5) == []
+    yaws = lambda distinct, limit, ratio: [y for y, _ in _screened_hypotheses(distinct, limit, ratio)]  # noqa: E731
+    ambiguous = [(0.1, tilt, 100.0), (2.0, tilt, 150.0), (3.0, tilt, 160.0)]   # best registration first
+    decisive = [(0.1, tilt, 100.0), (2.0, tilt, 250.0), (3.0, tilt, 400.0)]
+    assert yaws(ambiguous, 2, 2.0) == [0.1, 2.0]        # the next registers 1.5x worse: a second opinion
+    assert yaws(decisive, 2, 2.0) == [0.1]              # 2.5x worse: only the best
+    assert yaws(decisive, 2, None) == [0.1, 2.0]
+    assert yaws(decisive, None, None) == [0.1, 2.0, 3.0]
+    assert yaws(ambiguous, 1, 2.0) == [0.1]
+    assert _screened_hypotheses([], 2, 2.0) == []
