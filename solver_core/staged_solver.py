@@ -334,20 +334,24 @@ def solve(
                 cand_chamfer_ids, screen_pf, rate_hz=rate_hz, on_step=stepper("stage1"),
             )
             tilt = tilt @ torch.as_tensor(hyp_tilt, dtype=torch.float32)  # total tilt of this hypothesis
-            tilted_root = apply_root_offset(prior_root[screen_t], tilt)
-            att = find_marker_surface_points(
-                model, mk[screen_t], vis[screen_t], p2, up, cand_output_ids, config.correspondence, vertex_faces
-            )
-            p4, _ = solve_inverse_kinematics(
-                model, mk[screen_t], vis[screen_t], att, tilted_root, prior_body[screen_t], beta_prior, p2, up,
-                screen_ik, FreeParameters(yaw=False), rate_hz=rate_hz, on_step=stepper("stage1"),
-            )
-            err = marker_fit_error(model, mk[screen_t], vis[screen_t], p4, att, up, config.ik.marker_offset_m)
+            err = math.nan
+            if len(hypotheses) > 1:
+                # Stages 3-4 on the screening frames only rank the hypotheses (the winner goes on from
+                # its Stage 2): a single hypothesis skips them (same result, ~1 s less per bootstrap)
+                tilted_root = apply_root_offset(prior_root[screen_t], tilt)
+                att = find_marker_surface_points(
+                    model, mk[screen_t], vis[screen_t], p2, up, cand_output_ids, config.correspondence, vertex_faces
+                )
+                p4, _ = solve_inverse_kinematics(
+                    model, mk[screen_t], vis[screen_t], att, tilted_root, prior_body[screen_t], beta_prior, p2, up,
+                    screen_ik, FreeParameters(yaw=False), rate_hz=rate_hz, on_step=stepper("stage1"),
+                )
+                err = marker_fit_error(model, mk[screen_t], vis[screen_t], p4, att, up, config.ik.marker_offset_m)
             results.append({"yaw": hyp_yaw, "fit_m": err, "stage2": p2, "stage2_yaw": float(p2.yaw), "tilt": tilt,
                             "match": cand})
     best = min(results, key=lambda r: r["fit_m"])
     diag["hypotheses"] = [
-        {"start_yaw_deg": math.degrees(r["yaw"]), "stage2_yaw_deg": math.degrees(r["stage2_yaw"]) % 360.0, "marker_fit_mm": 1000 * r["fit_m"],
+        {"start_yaw_deg": math.degrees(r["yaw"]), "stage2_yaw_deg": math.degrees(r["stage2_yaw"]) % 360.0, "marker_fit_mm": None if math.isnan(r["fit_m"]) else 1000 * r["fit_m"],
          "part_joints": [model.joint_names[j] for j in r["match"].joints] if not r["match"].full_body else "full body"}
         for r in results
     ]

@@ -194,7 +194,8 @@ def _summary(info: dict, method: str) -> str:
         lines.append(f"markers cover: {kind} (marker/body box volume {info.get('volume_ratio', float('nan')):.2f}; "
                      f"{info.get('clusters', '?')} rigid marker groups)")
     if "chosen_yaw_deg" in info:
-        hyp = ", ".join(f"{h['stage2_yaw_deg']:.0f} deg: {h['marker_fit_mm']:.1f} mm" for h in info.get("hypotheses", []))
+        hyp = ", ".join(f"{h['stage2_yaw_deg']:.0f} deg: " + ("the only one" if h["marker_fit_mm"] is None else f"{h['marker_fit_mm']:.1f} mm")
+                        for h in info.get("hypotheses", []))
         lines.append(f"yaw: {info['chosen_yaw_deg']:.1f} deg (hypotheses {hyp})")
     if "stage5_marker_fit_mm" in info:
         lines.append(f"mean marker fit: {info['stage5_marker_fit_mm']:.1f} mm")
