@@ -7,7 +7,8 @@ This module only orchestrates; every stage is a pure function in its own module,
 sliding-window solver.
 
 Speed (beyond the paper, which optimises every stage over every frame for up to 10k L-BFGS
-iterations): hypotheses are screened through Stages 2-4 on a subsample of frames; the winner's
+iterations): hypotheses are screened through Stages 2-4 on a subsample of frames (a single
+hypothesis needs no ranking and stops after its Stage 2); the winner's
 chamfer stage runs on a larger subsample and is interpolated to every frame as the IK warm start;
 the IK stages (cheap: only the markers' surface points are skinned) run on every frame.
 """
