@@ -8,7 +8,8 @@ the current marker labels.  End of the marker stream flushes every remaining ref
 ends ``body/solved``.
 
 Deterministic in lockstep: a frame only ever uses priors stamped at or before it (the replay's
-'solver:body/prior' credit guarantees those arrived), and the math is single-threaded.
+'solver:body/prior' credit guarantees those arrived), and each solve is single-threaded (the
+bootstrap solves its two starts on two threads, each one deterministic; the best fit wins).
 """
 
 from __future__ import annotations
@@ -36,12 +37,15 @@ class SolverNodeConfig:
     # lock upgrades (the staged solver on frames spread over the take, ~30-60 s each time the take
     # doubles) on a worker thread: true for live streams (no stall), false keeps replays deterministic
     upgrade_in_background: bool = False
+    # bootstrap starts solved side by side on their own threads (the best marker fit is locked);
+    # 1 = only the first, for a machine whose second core the rest of the graph needs at start-up
+    bootstrap_starts: int = 2
 
     def __post_init__(self):
         if (self.bootstrap_s <= 0 or self.lag_frames < 0 or self.hop_frames < 1 or self.estimate_iterations < 1 or self.threads < 1
-                or self.defer_refine_hops < 1):
+                or self.defer_refine_hops < 1 or self.bootstrap_starts not in (1, 2)):
             raise ValueError("bootstrap_s > 0, lag_frames >= 0, hop_frames >= 1, estimate_iterations >= 1, threads >= 1, "
-                             "defer_refine_hops >= 1 are required")
+                             "defer_refine_hops >= 1, bootstrap_starts 1 or 2 are required")
 
 
 def load_models(name: str):
@@ -74,6 +78,8 @@ class Solver(Node):
         self.solver_config = replace(WindowedSolverConfig(), bootstrap_s=c.bootstrap_s, lag_frames=c.lag_frames, hop_frames=c.hop_frames,
                                      estimate_iterations=c.estimate_iterations, smoothness_weight=c.smoothness_weight,
                                      upgrade_in_background=c.upgrade_in_background)
+        if c.bootstrap_starts == 1:
+            self.solver_config = replace(self.solver_config, bootstrap_alternatives=())
         self.solver = None
         self.rate_hz = 0.0
         self.log.info("solver: %s, bootstrap %.1fs, lag %d frames", c.body_model, c.bootstrap_s, c.lag_frames)

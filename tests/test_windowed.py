@@ -99,6 +99,31 @@ def test_every_frame_gets_an_estimate_and_a_refined_result(streamed):
     assert labels is not None and (labels.face_ids >= 0).sum() >= 0.9 * len(labels.face_ids)
 
 
+def test_bootstrap_locks_the_best_fitting_hypothesis(streamed):
+    s = streamed["solver"]
+    fits = s.stats["bootstrap_hypotheses"]  # Stage-5 marker fit (mm) of each bootstrap start
+    assert len(fits) == 1 + len(s.config.bootstrap_alternatives) == 2 and all(f is not None for f in fits)
+    assert s.stats["bootstrap_chosen"] == int(np.argmin(fits))
+    assert s.last_bootstrap["stage5_marker_fit_mm"] == pytest.approx(min(fits), abs=1e-3)
+
+
+def test_bootstrap_skips_a_failing_hypothesis_and_reports_when_all_fail(streamed):
+    from uuomocap.solver_core.staged_solver import SolverConfig
+
+    s = _clone(streamed)
+    md, rows = streamed["md"], streamed["rows"]
+    sel = np.arange(0, 45, 2)  # 1.5 s at 15 Hz: a cheap window
+    prior, shape, _ = s._prior_window(np.asarray(md.stamps_ns)[sel])
+    broken = SolverConfig(stop_after="nowhere")  # solve() rejects it before any work: a start that fails
+    s.config = replace(s.config, bootstrap_alternatives=(broken,))
+    res = s._solve_bootstrap_window(md.positions[sel], md.visible[sel], md.rate_hz / 2, prior, shape)
+    assert s.stats["bootstrap_hypotheses"][1] is None and s.stats["bootstrap_chosen"] == 0
+    assert int(res.attachment.assigned.sum()) >= 36
+    s.config = replace(s.config, bootstrap_solver=broken)
+    with pytest.raises(ValueError, match="stop_after"):
+        s._solve_bootstrap_window(md.positions[sel], md.visible[sel], md.rate_hz / 2, prior, shape)
+
+
 def test_refined_accuracy_close_to_offline(streamed, session):
     from uuomocap.solver_core.metrics import mpjpe, mpjve
     from uuomocap.solver_core.windowed_solver import fast_bootstrap_config
