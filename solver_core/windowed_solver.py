@@ -783,8 +783,8 @@ class WindowedSolver:
 
         best, res = min(solved, key=rank)
         fits = [None if isinstance(r, Exception) else r.diagnostics.get("stage5_marker_fit_mm") for r in outcomes]
-        self.stats["bootstrap_hypotheses"] = [round(f, 3) if f is not None else None for f in fits]
-        self.stats["bootstrap_chosen"] = best
+        self.stats["bootstrap_start_fits_mm"] = [round(f, 3) if f is not None else None for f in fits]
+        self.stats["bootstrap_start_chosen"] = best
         return res
 
     _LOCK_FIELDS = ("face_ids", "bary", "betas", "yaw", "camera_tilt", "allowed_ids")

@@ -101,9 +101,9 @@ def test_every_frame_gets_an_estimate_and_a_refined_result(streamed):
 
 def test_bootstrap_locks_the_best_fitting_hypothesis(streamed):
     s = streamed["solver"]
-    fits = s.stats["bootstrap_hypotheses"]  # Stage-5 marker fit (mm) of each bootstrap start
+    fits = s.stats["bootstrap_start_fits_mm"]  # Stage-5 marker fit (mm) of each bootstrap start
     assert len(fits) == 1 + len(s.config.bootstrap_alternatives) == 2 and all(f is not None for f in fits)
-    assert s.stats["bootstrap_chosen"] == int(np.argmin(fits))
+    assert s.stats["bootstrap_start_chosen"] == int(np.argmin(fits))
     assert s.last_bootstrap["stage5_marker_fit_mm"] == pytest.approx(min(fits), abs=1e-3)
 
 
@@ -117,7 +117,7 @@ def test_bootstrap_skips_a_failing_hypothesis_and_reports_when_all_fail(streamed
     broken = SolverConfig(stop_after="nowhere")  # solve() rejects it before any work: a start that fails
     s.config = replace(s.config, bootstrap_alternatives=(broken,))
     res = s._solve_bootstrap_window(md.positions[sel], md.visible[sel], md.rate_hz / 2, prior, shape)
-    assert s.stats["bootstrap_hypotheses"][1] is None and s.stats["bootstrap_chosen"] == 0
+    assert s.stats["bootstrap_start_fits_mm"][1] is None and s.stats["bootstrap_start_chosen"] == 0
     assert int(res.attachment.assigned.sum()) >= 36
     s.config = replace(s.config, bootstrap_solver=broken)
     with pytest.raises(ValueError, match="stop_after"):

@@ -89,6 +89,8 @@ def bench_session(sdir: Path, offline: bool, bar) -> dict:
         "refined_latency_ms": {"lag": lag_ms, "p50": _pct(run.latency_refined_ms, 50), "p95": _pct(run.latency_refined_ms, 95),
                                "p95_minus_lag": _pct(run.latency_refined_ms, 95) - lag_ms},
         "rebootstraps": run.stats.get("rebootstraps", 0),
+        # Stage-5 marker fit (mm) of each bootstrap start and the index of the one locked
+        "bootstrap_start_fits_mm": run.stats.get("bootstrap_start_fits_mm"), "bootstrap_start_chosen": run.stats.get("bootstrap_start_chosen"),
         "lock_upgrades_started": run.stats.get("upgrades_started", 0), "lock_upgrades": run.stats.get("upgrades", 0), "lock_upgrade_s": run.stats.get("upgrade_seconds", []),
     }
     if gt is not None:
@@ -203,6 +205,10 @@ def run(args) -> int:
                  f"{s['estimate_mpjpe']:.1f} / {s['estimate_mpjve']:.1f}; offline {s['offline_mpjpe']:.1f} / {s['offline_mpjve']:.1f} "
                  f"(offline solve {s['offline_s']:.1f} s per session)")
     ups = [(Path(r["session"]).name[:16], r["lock_upgrades_started"], r["lock_upgrades"], r["lock_upgrade_s"]) for r in rows]
+    lines.append("bootstrap starts (Stage-5 marker fit, mm; * = locked): " + "; ".join(
+        f"{Path(r['session']).name[:16]} " + " / ".join(("-" if f is None else f"{f:.2f}") + ("*" if i == r["bootstrap_start_chosen"] else "")
+                                                       for i, f in enumerate(r["bootstrap_start_fits_mm"] or []))
+        for r in rows))
     lines.append("lock upgrades (worker thread; one still running when the take ends is dropped): " + "; ".join(
         f"{n} {k0} started, {k} adopted or refused in {', '.join(f'{x:.1f}' for x in t) or '-'} s" for n, k0, k, t in ups))
     if long:
