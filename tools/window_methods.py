@@ -185,7 +185,9 @@ def uuo_window(session_dir: Path, out_npz: Path, body_model: str | None = None, 
     write_npz(out_npz, out)
     info = {"method": "uuo-window", "stage_seconds": secs, "steady_fps": round(run.steady_fps, 1),
             "steady_fps_cpu": round(run.steady_fps_cpu, 1),
-            "rebootstraps": run.stats.get("rebootstraps", 0), "reassigned": run.stats.get("reassigned", 0)}
+            "rebootstraps": run.stats.get("rebootstraps", 0), "reassigned": run.stats.get("reassigned", 0),
+            # Stage-5 marker fit (mm) of each bootstrap start, and the one locked
+            "bootstrap_start_fits_mm": run.stats.get("bootstrap_start_fits_mm"), "bootstrap_start_chosen": run.stats.get("bootstrap_start_chosen")}
     if gt is not None and "joints" in gt:
         info.update({k: round(v, 3) for k, v in estimate_metrics(run, gt, "estimate").items()})
     return info
