@@ -114,7 +114,10 @@ class Solver(Node):
                                  iterations=1 if behind else None)
         self._publish(results)  # the estimate goes out before the smoothing pass runs
         if s.locked and not was_locked:
-            self.log.info("bootstrap done in %.1f s (%d frames estimated)", s.stats["bootstrap_seconds"][-1], len(results))
+            fits = s.stats.get("bootstrap_start_fits_mm") or []
+            starts = ", starts' marker fit " + " / ".join("failed" if f is None else f"{f:.2f}" for f in fits) + \
+                f" mm, #{s.stats['bootstrap_start_chosen'] + 1} locked" if fits else ""
+            self.log.info("bootstrap done in %.1f s (%d frames estimated%s)", s.stats["bootstrap_seconds"][-1], len(results), starts)
         c = self.config
         if not self.input_waiting("markers"):
             self._publish(s.refine_ready())  # on time: every due smoothing pass
