@@ -133,7 +133,7 @@ def fast_bootstrap_config() -> SolverConfig:
 
 
 def bootstrap_alternative_config() -> SolverConfig:
-    """The second bootstrap hypothesis: ``fast_bootstrap_config`` with the offline part matching
+    """The second bootstrap start: ``fast_bootstrap_config`` with the offline part matching
     (48 frames, 60 iterations instead of 24 and 40)."""
     return replace(fast_bootstrap_config(), matching=SolverConfig().matching)
 
@@ -753,7 +753,7 @@ class WindowedSolver:
     def _solve_bootstrap_window(self, markers: np.ndarray, vis: np.ndarray, rate_hz: float, prior: BodyPrior, shape: np.ndarray):
         """The staged solver on the bootstrap window (markers (S,M,3), vis (S,M)) under
         ``bootstrap_solver`` and each of ``bootstrap_alternatives`` (worker threads); the result
-        with the most markers placed, then the lowest Stage-5 marker fit.  A hypothesis that fails
+        with the most markers placed, then the lowest Stage-5 marker fit.  A start that fails
         is skipped; when all fail, the first one's error is raised."""
         configs = (self.config.bootstrap_solver, *self.config.bootstrap_alternatives)
 

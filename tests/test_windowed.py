@@ -99,7 +99,7 @@ def test_every_frame_gets_an_estimate_and_a_refined_result(streamed):
     assert labels is not None and (labels.face_ids >= 0).sum() >= 0.9 * len(labels.face_ids)
 
 
-def test_bootstrap_locks_the_best_fitting_hypothesis(streamed):
+def test_bootstrap_locks_the_best_fitting_start(streamed):
     s = streamed["solver"]
     fits = s.stats["bootstrap_start_fits_mm"]  # Stage-5 marker fit (mm) of each bootstrap start
     assert len(fits) == 1 + len(s.config.bootstrap_alternatives) == 2 and all(f is not None for f in fits)
@@ -107,11 +107,11 @@ def test_bootstrap_locks_the_best_fitting_hypothesis(streamed):
     assert s.last_bootstrap["stage5_marker_fit_mm"] == pytest.approx(min(fits), abs=1e-3)
 
 
-def test_bootstrap_skips_a_failing_hypothesis_and_reports_when_all_fail(streamed):
+def test_bootstrap_skips_a_failing_start_and_reports_when_all_fail(streamed):
     from uuomocap.solver_core.staged_solver import SolverConfig
 
     s = _clone(streamed)
-    md, rows = streamed["md"], streamed["rows"]
+    md = streamed["md"]
     sel = np.arange(0, 45, 2)  # 1.5 s at 15 Hz: a cheap window
     prior, shape, _ = s._prior_window(np.asarray(md.stamps_ns)[sel])
     broken = SolverConfig(stop_after="nowhere")  # solve() rejects it before any work: a start that fails
