@@ -47,6 +47,9 @@ class CorrespondenceConfig:
     # normals for the point): with plain distances a marker between two limbs (hands together in
     # the benchmark's jump) takes the nearer skin of the wrong forearm, 7 mm away instead of 9.5.
     marker_offset_m: float = 0.0095
+    # Beyond the paper: the offset surface follows the skin's smooth normals (each patch corner
+    # moved along its vertex normal) as IK's "smooth_normal" model does; False = facet normals.
+    smooth_normals: bool = True
 
 
 def squared_distance_to_triangles(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -179,21 +182,33 @@ def find_marker_surface_points(
     uniq, inverse = torch.unique(corner_ids.reshape(-1), return_inverse=True)
     corner_pos = pose_params(model, sub, up, lbs.SurfacePoints.from_vertex_ids(uniq)).vertices  # (S,U,3)
     tri = corner_pos[:, inverse.reshape(-1)].reshape(len(frames), m_count, width, 3, 3)
-    # the skin offset by delta along each face normal: where IK will put the marker
-    normal = torch.linalg.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :], dim=-1)
-    shift = config.marker_offset_m * normal / normal.norm(dim=-1, keepdim=True).clamp(min=1e-12)  # (S,M,Fp,3)
-    off = tri + shift[..., None, :]
+    rest_params = BodyParams(
+        torch.zeros(1, 3), torch.zeros(1, 23, 3), torch.zeros(1, 3), params.betas, torch.zeros(())
+    )
+    rest_corner = pose_params(model, rest_params, up, lbs.SurfacePoints.from_vertex_ids(uniq)).vertices[0]  # (U,3)
+    rest_tri = rest_corner[inverse.reshape(-1)].reshape(m_count, width, 3, 3)
+    # the skin offset by delta: where IK will put the marker
+    if config.smooth_normals:
+        # each corner moves along its smooth (vertex) normal, carried from the rest pose in the
+        # posed face's frame - the offset surface of IK's "smooth_normal" model
+        from uuomocap.solver_core.inverse_kinematics import triangle_frames
+        from uuomocap.solver_core.mesh import vertex_normals
+
+        rest_all = lbs.forward(model, params.betas.reshape(1, -1).float(), torch.zeros(1, 24, 3)).vertices[0]
+        corner_normals = vertex_normals(rest_all, faces)[corner_ids]  # (M,Fp,3 corners,3)
+        local = corner_normals @ triangle_frames(rest_all[corner_ids]).transpose(-1, -2)  # (M,Fp,3,3) in the face frame
+        shift = config.marker_offset_m * (local @ triangle_frames(tri))  # (S,M,Fp,3,3)
+        off = tri + shift
+    else:
+        normal = torch.linalg.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :], dim=-1)
+        shift = config.marker_offset_m * normal / normal.norm(dim=-1, keepdim=True).clamp(min=1e-12)  # (S,M,Fp,3)
+        off = tri + shift[..., None, :]
     p = torch.nan_to_num(mk)[:, :, None, :]
     d2, bc = squared_distance_to_triangles(p, off[..., 0, :], off[..., 1, :], off[..., 2, :])  # (S,M,Fp)
     best_face = d2.argmin(dim=2)  # (S,M)
     best_bary = torch.gather(bc, 2, best_face[..., None, None].expand(-1, -1, 1, 3))[:, :, 0]  # (S,M,3)
 
     # pull every frame's closest point back to the rest-pose (shaped) surface
-    rest_params = BodyParams(
-        torch.zeros(1, 3), torch.zeros(1, 23, 3), torch.zeros(1, 3), params.betas, torch.zeros(())
-    )
-    rest_corner = pose_params(model, rest_params, up, lbs.SurfacePoints.from_vertex_ids(uniq)).vertices[0]  # (U,3)
-    rest_tri = rest_corner[inverse.reshape(-1)].reshape(m_count, width, 3, 3)
     chosen = torch.gather(rest_tri[None].expand(len(frames), -1, -1, -1, -1), 2, best_face[..., None, None, None].expand(-1, -1, 1, 3, 3))[:, :, 0]
     rest_points = (chosen * best_bary[..., None]).sum(dim=2)  # (S,M,3)
     centre = _geometric_median(rest_points.transpose(0, 1), vis.t().float(), config.median_iterations)  # (M,3)

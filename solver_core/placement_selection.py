@@ -71,13 +71,14 @@ def prior_rotation_placement(
 
 @torch.no_grad()
 def marker_fit_residuals(model, markers: torch.Tensor, visible: torch.Tensor, params: BodyParams,
-                         attachment: MarkerAttachment, up: torch.Tensor, offset_m: float) -> torch.Tensor:
+                         attachment: MarkerAttachment, up: torch.Tensor, offset_m: float,
+                         offset_model: str = "smooth_normal") -> torch.Tensor:
     """(M,) RMS distance (metres) over visible frames between each marker and the point the body
     predicts for it (surface point + offset along the normal); inf for unassigned or never-seen
     markers.  markers (T,M,3); visible (T,M)."""
     out = torch.full((markers.shape[1],), float("inf"))
     assigned = attachment.assigned
-    pred = predicted_markers(model, params, attachment, up, offset_m)
+    pred = predicted_markers(model, params, attachment, up, offset_m, offset_model)
     sq = ((pred - torch.nan_to_num(markers[:, assigned])) ** 2).sum(-1)
     w = visible[:, assigned].to(sq.dtype)
     seen = w.sum(0)
@@ -111,6 +112,7 @@ def select_marker_placements(
     vertex_faces: torch.Tensor,
     refine,
     offset_m: float,
+    offset_model: str = "smooth_normal",
 ) -> tuple[MarkerAttachment, list[int]]:
     """The per-marker choice between the current points and the prior-rotation placement.
 
@@ -118,11 +120,11 @@ def select_marker_placements(
     the choice is made on; attachment: the current points; marker_joints (M,) their dominant
     joints; refine(params, attachment, markers, visible) -> (params, attachment): the IK both
     placements go through (Stage 5's, so they are compared on the energy that will use them);
-    offset_m: the marker offset of that IK.  Returns the chosen points (as refined by that IK) and
+    offset_m, offset_model: the marker offset of that IK and its model.  Returns the chosen points (as refined by that IK) and
     the markers that took the prior's.
     """
     alternative = prior_rotation_placement(model, markers, visible, params, prior_body_pose, up, attachment, marker_joints,
                                            allowed_vertex_ids, correspondence, vertex_faces)
     fitted = [refine(params, att, markers, visible) for att in (attachment, alternative)]
-    residuals = [marker_fit_residuals(model, markers, visible, p, att, up, offset_m) for p, att in fitted]
+    residuals = [marker_fit_residuals(model, markers, visible, p, att, up, offset_m, offset_model) for p, att in fitted]
     return choose_placements(fitted[0][1], fitted[1][1], residuals[0], residuals[1])

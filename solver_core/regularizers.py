@@ -37,6 +37,18 @@ def pose_prior_energy(
     return (per_frame * frame_weights).sum() / frame_weights.sum().clamp(min=1e-9)
 
 
+def mean_pose_offset_energy(body_pose: torch.Tensor, prior_body_pose: torch.Tensor) -> torch.Tensor:
+    """Sum over joints of the squared MEAN (over frames) axis-angle difference to the prior.
+
+    body_pose, prior_body_pose: (T,23,3).  A video estimator's per-frame error is large but
+    comes and goes within a fraction of a second; its mean over a take is small.  Where the
+    markers do not decide a joint's rotation (a limb with two or three markers can slide its
+    points and its pose together at almost no cost), this term picks the rotation the video
+    sees on average, while the per-frame prior stays weak enough not to add the video's jitter.
+    """
+    return ((body_pose - prior_body_pose).mean(dim=0) ** 2).sum()
+
+
 def shape_prior_energy(betas: torch.Tensor, shape_prior: torch.Tensor) -> torch.Tensor:
     """Paper Eq. shape-MSE: mean over components of (beta - beta_img)^2.  betas (B,), shape_prior (B,)."""
     n = min(betas.shape[-1], shape_prior.shape[-1])

@@ -53,7 +53,8 @@ from uuomocap.solver_core.body_params import (
     interpolate_params,
     up_tensor,
 )
-from uuomocap.solver_core.inverse_kinematics import InverseKinematicsConfig, predicted_markers, solve_inverse_kinematics
+from uuomocap.solver_core.inverse_kinematics import (InverseKinematicsConfig, predicted_markers, smooth_normals_in_face_frames,
+                                                     solve_inverse_kinematics)
 from uuomocap.solver_core.marker_surface_correspondence import find_marker_surface_points
 from uuomocap.solver_core.optimization import LBFGSConfig
 from uuomocap.solver_core.prior_preparation import (
@@ -167,7 +168,8 @@ class WindowedSolverConfig:
     # paper, lambda_Theta = 1 instead of 0.1: the per-frame solves are exact where offline L-BFGS
     # stops early, and with the paper's weight they over-fit the markers along poorly observed
     # directions (40-marker walk / jump / arms refined 14.9 / 18.5 / 18.7 -> 13.7 / 16.1 / 15.8 mm).
-    ik: InverseKinematicsConfig = InverseKinematicsConfig(pose_weight=1.0)
+    # The facet normal, as the staged solver's IK (its config explains).
+    ik: InverseKinematicsConfig = InverseKinematicsConfig(pose_weight=1.0, offset_model="face_normal")
     # Issue 6 "Steady state": Gauss-Newton iterations of the per-frame estimate.
     estimate_iterations: int = 2
     # Warm start the estimate by constant-velocity extrapolation of the previous two frames.
@@ -266,8 +268,8 @@ class WindowedSolverConfig:
             raise ValueError("bootstrap_s > 0, lag_frames >= 0, hop_frames >= 1, context_frames >= 0 are required")
         if self.estimate_iterations < 1 or self.refine_iterations < 0:
             raise ValueError("estimate_iterations >= 1 and refine_iterations >= 0 are required")
-        if self.ik.offset_model not in ("normal", "distance"):
-            raise ValueError(f"ik.offset_model must be 'normal' or 'distance', got {self.ik.offset_model!r}")
+        if self.ik.offset_model not in ("smooth_normal", "face_normal", "distance"):
+            raise ValueError(f"ik.offset_model must be smooth_normal, face_normal or distance, got {self.ik.offset_model!r}")
 
 
 @dataclass
@@ -322,6 +324,16 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
     return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+def _triangle_frames(corners: np.ndarray) -> np.ndarray:
+    """numpy twin of ``inverse_kinematics.triangle_frames``: (..., 3 corners, 3) -> (..., 3, 3)
+    rows = first edge direction, in-plane perpendicular, unit normal."""
+    e1 = corners[..., 1, :] - corners[..., 0, :]
+    n = _cross(e1, corners[..., 2, :] - corners[..., 0, :])
+    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+    e1 = e1 / np.maximum(np.linalg.norm(e1, axis=-1, keepdims=True), 1e-12)
+    return np.stack([e1, n[..., [1, 2, 0]] * e1[..., [2, 0, 1]] - n[..., [2, 0, 1]] * e1[..., [1, 2, 0]], n], axis=-2)
 
 
 def _skew_cross_columns(c: np.ndarray, rot: np.ndarray) -> np.ndarray:
@@ -862,8 +874,14 @@ class WindowedSolver:
         bary = self.bary[assigned]
         self._bary_a = bary
         s = (self._vc * bary[:, :, None]).sum(1)
-        n = _cross(self._vc[:, 1] - self._vc[:, 0], self._vc[:, 2] - self._vc[:, 0])
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        if self.config.ik.offset_model == "smooth_normal":
+            # the skin's smooth normal in each face's frame (inverse_kinematics explains why)
+            self._smooth_local = smooth_normals_in_face_frames(m, self.betas, self._attachment()).double().numpy()
+            n = np.einsum("mi,mij->mj", self._smooth_local, _triangle_frames(self._vc))
+        else:
+            self._smooth_local = None
+            n = _cross(self._vc[:, 1] - self._vc[:, 0], self._vc[:, 2] - self._vc[:, 0])
+            n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
         self._rest_point = s + self.config.ik.marker_offset_m * n  # the marker's rest position
         self._w_point = np.einsum("mc,mcj->mj", bary, self._wc)
         self._w_desc = self._w_point @ self._desc.T  # W[m, j] = sum of weights of j's subtree
@@ -893,7 +911,9 @@ class WindowedSolver:
         s = (pc * self._bary_a[None, :, :, None]).sum(2)
         mk = markers[:, a]
         w = vis[:, a].astype(np.float64)
-        if c.offset_model == "normal":
+        if c.offset_model == "smooth_normal":
+            pred = s + c.marker_offset_m * np.einsum("mi,bmij->bmj", self._smooth_local, _triangle_frames(pc))
+        elif c.offset_model == "face_normal":
             n = _cross(pc[:, :, 1] - pc[:, :, 0], pc[:, :, 2] - pc[:, :, 0])
             n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
             pred = s + c.marker_offset_m * n
@@ -1425,8 +1445,8 @@ class WindowedSolver:
         if ok.any():
             # scored like Stage 3 scores its candidates: distance to the point + the skin offset
             with torch.no_grad():
-                posed = predicted_markers(self.model, params, cur, self.up,
-                                          c.bootstrap_solver.correspondence.marker_offset_m)  # (S,Ma,3)
+                posed = predicted_markers(self.model, params, cur, self.up, c.bootstrap_solver.correspondence.marker_offset_m,
+                                          c.ik.offset_model)  # (S,Ma,3)
             d = (posed - torch.nan_to_num(markers[:, ok])).norm(dim=-1)
             w = vis[:, ok].float()
             current_score[ok] = (d * w).sum(0) / w.sum(0).clamp(min=1)

@@ -253,6 +253,9 @@ def test_solve_cli_writes_out_npz(full_session, tmp_path):
     for key in ("betas", "trans", "mocap_framerate", "stamps_ns", "marker_parts", "marker_faces", "marker_bary", "method"):
         assert key in arrays
     assert main(["solve", "--markers", str(full_session / "markers.c3d"), "--out", str(out), "--quiet"]) == 2  # no prior
+    # the windowed solver replays a session as recorded: loose files and overrides are refused up front
+    for extra in (["--markers", str(full_session / "markers.c3d")], [str(full_session), "--clock-offset", "0.1"]):
+        assert main(["solve", *extra, "--method", "uuo-window", "--out", str(out), "--quiet"]) == 2
 
 
 def test_cluster_consistency_moves_a_marker_that_left_its_rigid_group():

@@ -10,7 +10,8 @@ import numpy as np
 
 from uuomocap.commands import UserError, add_json_flag, emit
 
-SOLVER_METHODS = ("uuo", "uuo-paper", "video-rr", "no-mht", "markers-only", "oracle-labeled", "uuo-matching", "uuo-stage2", "uuo-stage4")
+SOLVER_METHODS = ("uuo", "uuo-window", "uuo-paper", "video-rr", "no-mht", "markers-only", "oracle-labeled", "uuo-matching", "uuo-stage2",
+                  "uuo-stage4")
 
 
 def register(subparsers) -> None:
@@ -39,7 +40,8 @@ def register(subparsers) -> None:
                         help="override the marker file's up axis")
     parser.add_argument("--out", type=Path, required=True, help="output OUT.npz")
     parser.add_argument("--method", default="uuo", choices=SOLVER_METHODS,
-                        help="uuo (default) | uuo-paper (as published) | video-rr | no-mht | markers-only | "
+                        help="uuo (default) | uuo-window (the near-online solver replayed frame by frame: what the live "
+                             "graph records; session directories only) | uuo-paper (as published) | video-rr | no-mht | markers-only | "
                              "oracle-labeled (needs gt.npz) | uuo-matching / uuo-stage2 / uuo-stage4 (stage ablation)")
     parser.add_argument("--body-model", default=None,
                         help="open-low, open-full or an SMPL .pkl/.npz (default: the session's, else open-low)")
@@ -169,6 +171,20 @@ def _run(args) -> int:
 
     import uuomocap.solver_methods  # noqa: F401  (registers the methods)
 
+    if args.method == "uuo-window":
+        # the windowed solver replays the session's own streams (markers + prior at their clocks)
+        if args.session is None or args.prior is not None or args.video is not None or args.up_axis or args.clock_offset is not None:
+            raise UserError("--method uuo-window solves a session directory as recorded (markers.c3d + prior.npz); "
+                            "--markers / --prior / --video / --up-axis / --clock-offset are offline-only")
+        from uuomocap.protocol.session import SessionError, load_session
+
+        try:
+            has_prior = load_session(args.session, load_prior=True).prior is not None
+        except SessionError as exc:
+            raise UserError(str(exc)) from None
+        if not has_prior:
+            raise UserError(f"{args.session}: --method uuo-window needs the session's prior.npz (make one with `uuomocap prior`)")
+        import uuomocap.window_methods  # noqa: F401  (registers uuo-window)
     inputs = build_inputs(args)
     if args.out.suffix != ".npz":
         raise UserError(f"--out must end in .npz, got {args.out}")
@@ -200,6 +216,12 @@ def _summary(info: dict, method: str) -> str:
     if "stage5_marker_fit_mm" in info:
         lines.append(f"mean marker fit: {info['stage5_marker_fit_mm']:.1f} mm")
     secs = info.get("stage_seconds") or {}
-    if secs:
+    if method == "uuo-window":
+        fits = info.get("bootstrap_start_fits_mm") or []
+        lines.append(f"bootstrap {secs.get('bootstrap', float('nan')):.1f} s (starts' marker fit "
+                     + " / ".join("failed" if f is None else f"{f:.2f} mm" for f in fits)
+                     + f", #{(info.get('bootstrap_start_chosen') or 0) + 1} locked); then {info.get('steady_fps', float('nan')):.0f} "
+                     f"frames/s; {info.get('rebootstraps', 0)} re-bootstraps, {info.get('reassigned', 0)} markers re-assigned")
+    elif secs:
         lines.append("seconds per stage: " + ", ".join(f"{k} {v:.2f}" for k, v in secs.items()) + f" (total {sum(secs.values()):.2f})")
     return "\n".join(lines)
