@@ -171,6 +171,7 @@ def test_launch_validation_reports_every_problem(tmp_path):
     assert "unknown argument 'speed'" in problems(doc, m=str(cap), speed=2)
     assert "$(arg q) names no declared argument" in problems({"nodes": [{**replay, "params": {"file": "$(arg q)"}}]})
     assert "respawn policy must be one of" in problems({"nodes": [{**replay, "respawn": "sometimes"}]})
+    assert "nice must be an integer 0-19" in problems({"nodes": [{**replay, "nice": 25}]})
 
     # endpoint collisions: a tcp port someone holds, an ipc dir with a live broker
     import socket
@@ -426,12 +427,16 @@ def test_killed_node_is_respawned_and_recording_continues(tmp_path):
         {"name": "replay", "plugin": "marker_replay", "params": {"file": str(cap), "ack_from": ["relay"]}, "on_exit": "shutdown"},
         {"name": "relay", "plugin": "relay", "params": {"input": "markers/raw", "output": "markers/relayed"},
          "respawn": {"policy": "on-failure", "max_retries": 2, "backoff_s": 0.2}},
-        {"name": "rec", "plugin": "recorder", "params": {"out": str(out), "topics": ["markers/relayed"], "flush_interval_s": 0.2}},
+        {"name": "rec", "plugin": "recorder", "params": {"out": str(out), "topics": ["markers/relayed"], "flush_interval_s": 0.2},
+         "nice": 5},
     ]})
     proc = start_launch(tmp_path, g, tag="k")
     try:
         info = graph_json(proc, "relay", 3)
         relay_pid = next(n["pid"] for n in info["nodes"] if n["name"] == "relay")
+        rec_pid = next(n["pid"] for n in info["nodes"] if n["name"] == "rec")
+        # 'nice: 5' lowers that node's CPU priority only
+        assert os.getpriority(os.PRIO_PROCESS, rec_pid) == min(19, os.getpriority(os.PRIO_PROCESS, relay_pid) + 5)
         poll(lambda: len(recorded(out)) >= 30, "30 relayed frames")
         os.kill(relay_pid, signal.SIGKILL)
         code = finish(proc)

@@ -19,6 +19,7 @@ Launch file (``launch/*.yaml``)::
         respawn: {policy: on-failure, max_retries: 3, backoff_s: 0.5}   # or: never | on-failure | always
         on_exit: shutdown                # the graph ends when this node finishes
         required: false                  # a permanent failure of this node ends the graph with an error
+        nice: 10                         # lower CPU priority (0-19) for work that can wait for the critical path
         if: $(arg lockstep)              # / unless: ...
 
 Substitutions: ``$(arg NAME)``, ``$(env NAME [DEFAULT])``, ``$(dirname)`` (this file's
@@ -96,6 +97,7 @@ class NodeSpec:
     on_exit: str = "ignore"  # ignore | shutdown
     required: bool = False
     origin: str = ""
+    nice: int = 0  # added to the process's niceness at spawn (0-19)
 
 
 @dataclass
@@ -263,7 +265,7 @@ def load_launch(path: str | Path, cli_args: dict[str, Any] | None = None, _depth
         where = f"{file.name}: node #{i + 1}"
         if not isinstance(raw, dict):
             raise LaunchError(f"{where}: a node is a mapping with name and plugin")
-        unknown = set(raw) - {"name", "plugin", "params", "remap", "respawn", "on_exit", "required", "if", "unless"}
+        unknown = set(raw) - {"name", "plugin", "params", "remap", "respawn", "on_exit", "required", "if", "unless", "nice"}
         if unknown:
             raise LaunchError(f"{where}: unknown key {sorted(unknown)[0]!r}")
         raw = sub.value(raw)
@@ -281,7 +283,11 @@ def load_launch(path: str | Path, cli_args: dict[str, Any] | None = None, _depth
         on_exit = raw.get("on_exit", "ignore")
         if on_exit not in ("ignore", "shutdown"):
             raise LaunchError(f"{where}: on_exit must be ignore or shutdown, got {on_exit!r}")
-        nodes.append(NodeSpec(name, plugin, raw.get("params") or {}, remaps, _respawn(raw.get("respawn"), where), on_exit, bool(raw.get("required", False)), str(file)))
+        nice = raw.get("nice", 0)
+        if isinstance(nice, bool) or not isinstance(nice, int) or not 0 <= nice <= 19:
+            raise LaunchError(f"{where}: nice must be an integer 0-19 (lower CPU priority), got {nice!r}")
+        nodes.append(NodeSpec(name, plugin, raw.get("params") or {}, remaps, _respawn(raw.get("respawn"), where), on_exit,
+                              bool(raw.get("required", False)), str(file), nice))
     transport = sub.value(doc.get("transport") or {"kind": "ipc"})
     return GraphSpec(str(doc.get("name") or file.stem), str(file), nodes, transport, external, args)
 
@@ -484,6 +490,7 @@ class Child:
     next_start: float | None = None
     done: bool = False
     exit_codes: list[int] = field(default_factory=list)
+    nice: int = 0
 
 
 class Launcher:
@@ -520,10 +527,12 @@ class Launcher:
             argv.append("--ack")
         return argv
 
-    def _preexec(self, parent_pid: int, pgid: int | None):
+    def _preexec(self, parent_pid: int, pgid: int | None, nice: int = 0):
         prctl = self._prctl
 
         def hook():
+            if nice:
+                os.nice(nice)
             if prctl is not None:
                 prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
             if os.getppid() != parent_pid:  # the launcher died before prctl took effect
@@ -545,7 +554,7 @@ class Launcher:
             self.log_dir.mkdir(parents=True, exist_ok=True)
             out = open(self.log_dir / f"{child.name}.log", "ab")
         env = dict(os.environ, PYTHONUNBUFFERED="1")
-        child.proc = subprocess.Popen(argv, preexec_fn=self._preexec(os.getpid(), self.pgid), stdout=out, stderr=out, stdin=subprocess.DEVNULL, env=env, close_fds=True)
+        child.proc = subprocess.Popen(argv, preexec_fn=self._preexec(os.getpid(), self.pgid, child.nice), stdout=out, stderr=out, stdin=subprocess.DEVNULL, env=env, close_fds=True)
         if out:
             out.close()
         try:
@@ -561,7 +570,7 @@ class Launcher:
         self.children["_broker"] = Child("_broker", broker_argv, Respawn("always", 1_000_000, 0.2, 2.0), is_broker=True)
         for vn in self.graph.nodes:
             ns = vn.spec
-            self.children[ns.name] = Child(ns.name, self._argv(vn), ns.respawn, ns.on_exit, ns.required)
+            self.children[ns.name] = Child(ns.name, self._argv(vn), ns.respawn, ns.on_exit, ns.required, nice=ns.nice)
         for w in self.graph.warnings:
             self.say(f"warning: {w}")
         for child in self.children.values():
