@@ -155,6 +155,7 @@ def solver_config_for(method: str, **overrides):
             ik=replace(InverseKinematicsConfig(), offset_model="distance", smoothness_weight=0.0),
             refinement_rounds=1,
             placement_selection=replace(cfg.placement_selection, enabled=False),
+            fit_offset_model="face_normal",
         )
     elif method == "markers-only":
         # the neutral prior has no rotation to offer a second opinion on the marker points
