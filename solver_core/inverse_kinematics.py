@@ -9,9 +9,10 @@ marker (SOMA/MoSh marker offset).  Two formulations:
     the marker's direction from the surface (3 constraints per marker instead of 1).  A marker's
     base sits on smooth skin, not on a facet of the model's mesh: on the 1229-vertex body the
     facet normal is 10 deg (mean; 21 deg p90) off the smooth one, which puts the predicted marker
-    ~2 mm off at the true pose - twice the 0.8 mm of a calibrated system's noise, enough to let
-    wrong surface points fit as well as the right ones.  The rest-pose smooth normal is carried
-    in the posed face's frame (only the 3 corners are skinned): 0.9-1.1 mm at the true pose;
+    ~2 mm off at the true pose - twice the 0.8 mm of a calibrated system's noise.  The rest-pose
+    smooth normal is carried in the posed face's frame (only the 3 corners are skinned): 0.9-1.1
+    mm at the true pose.  The labelled IK uses it; the unlabelled solver keeps the facet normal
+    (staged_solver.SolverConfig.ik says why);
   * "face_normal": the same with the posed face normal (sessions before 12).
 Only the markers' surface points are skinned (subset evaluation of the body model), so a
 450-frame, 40-marker window is cheap.  Invisible markers contribute nothing (occlusion-aware).

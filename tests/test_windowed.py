@@ -407,3 +407,26 @@ def test_lock_upgrade_keeps_the_body_part(streamed):
     assert s.stats["upgrades"] == 1 and s.stats["upgrades_other_part"] == 1 and s.stats["upgrades_rejected"] == 1
     np.testing.assert_array_equal(s.face_ids, faces)
     assert s.labels_version == version
+
+
+def test_per_frame_model_matches_the_staged_solver_marker_models(streamed):
+    """The per-frame solves' numpy body (``_linearize``) predicts the markers as the torch IK's
+    ``predicted_markers`` does, for the facet and the smooth-normal offset models."""
+    from uuomocap.solver_core.body_params import BodyParams
+    from uuomocap.solver_core.inverse_kinematics import predicted_markers
+
+    for offset_model in ("face_normal", "smooth_normal"):
+        s = _clone(streamed)
+        s.config = replace(s.config, ik=replace(s.config.ik, offset_model=offset_model))
+        s._prepare_lock()
+        hist = list(s._history)[-5:]
+        theta = np.stack([h.theta for h in hist])
+        trans = np.stack([h.trans for h in hist])
+        lin = s._linearize(theta, trans, np.stack([h.markers for h in hist]), np.stack([h.visible for h in hist]), jacobian=False)
+        params = BodyParams(torch.as_tensor(theta[:, :3], dtype=torch.float32),
+                            torch.as_tensor(theta[:, 3:], dtype=torch.float32).reshape(len(hist), 23, 3),
+                            torch.as_tensor(trans, dtype=torch.float32), torch.as_tensor(s.betas, dtype=torch.float32).reshape(-1),
+                            torch.as_tensor(float(s.yaw), dtype=torch.float32))
+        with torch.no_grad():
+            expected = predicted_markers(s.model, params, s._attachment(), s.up, s.config.ik.marker_offset_m, offset_model)
+        assert np.abs(lin["pred"] - expected.double().numpy()).max() < 1e-4, offset_model
