@@ -24,7 +24,8 @@ from uuomocap.solver_core import lbs
 from uuomocap.solver_core.body_params import BodyParams, pose_params
 from uuomocap.solver_core.chamfer import mean_distance_to_targets, vertex_face_table
 from uuomocap.solver_core.body_params import MarkerAttachment
-from uuomocap.solver_core.mesh import closest_point_on_triangles
+from uuomocap.solver_core.inverse_kinematics import triangle_frames
+from uuomocap.solver_core.mesh import closest_point_on_triangles, vertex_normals
 from uuomocap.solver_core.parts import vertex_dominant_joint
 
 
@@ -191,9 +192,6 @@ def find_marker_surface_points(
     if config.smooth_normals:
         # each corner moves along its smooth (vertex) normal, carried from the rest pose in the
         # posed face's frame - the offset surface of IK's "smooth_normal" model
-        from uuomocap.solver_core.inverse_kinematics import triangle_frames
-        from uuomocap.solver_core.mesh import vertex_normals
-
         rest_all = lbs.forward(model, params.betas.reshape(1, -1).float(), torch.zeros(1, 24, 3)).vertices[0]
         corner_normals = vertex_normals(rest_all, faces)[corner_ids]  # (M,Fp,3 corners,3)
         local = corner_normals @ triangle_frames(rest_all[corner_ids]).transpose(-1, -2)  # (M,Fp,3,3) in the face frame
