@@ -179,6 +179,28 @@ def full_session(tmp_path_factory) -> Path:
                          n_markers=30, seed=3, yaw_offset_deg=180.0)
 
 
+def test_labeled_reference_takes_its_shape_from_the_markers(full_session):
+    """The labelled reference (oracle-labeled) is the floor for the unlabelled solver: with the true
+    points it must read the shape off the markers, not keep the video's (shrunk, noisy) shape."""
+    torch.set_num_threads(1)
+    from uuomocap.solver_core.baselines import labeled_inverse_kinematics
+    from uuomocap.solver_core.body_params import MarkerAttachment
+    from uuomocap.solver_methods import inputs_from_session, load_models
+
+    inp = inputs_from_session(full_session, load_gt=True)
+    model, _ = load_models(inp.body_model)
+    nb = model.num_betas
+    true_betas = np.asarray(inp.gt["betas"])[:nb]
+    prior_err = np.linalg.norm(np.asarray(inp.shape_prior)[:nb] - true_betas)
+    assert prior_err > 0.5, prior_err  # the simulated video prior's shape is off
+    att = MarkerAttachment(torch.as_tensor(inp.gt["marker_faces"]), torch.as_tensor(inp.gt["marker_bary"]).float(),
+                           torch.zeros(inp.markers.shape[1]))
+    res = labeled_inverse_kinematics(inp.markers, inp.visible, inp.up_axis, inp.prior, inp.shape_prior, att, model,
+                                     rate_hz=inp.rate_hz)
+    err = np.linalg.norm(res.params.betas.numpy() - true_betas)
+    assert err < 0.6 * prior_err, (err, prior_err)
+
+
 def test_full_body_solve_picks_yaw_and_beats_the_prior(full_session):
     torch.set_num_threads(1)
     from uuomocap.solver_core.baselines import labeled_inverse_kinematics, video_rigid_registration
