@@ -57,6 +57,7 @@ from uuomocap.solver_core.inverse_kinematics import (InverseKinematicsConfig, pr
                                                      solve_inverse_kinematics)
 from uuomocap.solver_core.marker_surface_correspondence import find_marker_surface_points
 from uuomocap.solver_core.optimization import LBFGSConfig
+from uuomocap.solver_core.pose_fitting import PoseFittingConfig
 from uuomocap.solver_core.prior_preparation import (
     BodyPrior,
     camera_to_world_rotation,
@@ -100,10 +101,21 @@ class _StopWhenStale(SolverProgress):
         self._check()
 
 
+def windowed_staged_config(**overrides) -> SolverConfig:
+    """The offline solver as the bootstrap and the lock upgrades run it: Stage 2 keeps the paper's
+    shape prior (lambda_beta 1), where the offline solver uses 0.1.  Measured (40 markers, refined
+    MPJPE, 13 sessions = the bench's three + ten ``sample make`` takes): 0.1 in the bootstrap and the
+    upgrades 15.46 mm (the bench's three 11.59), 1 in both 14.85 (11.02), 1 in the bootstrap only
+    14.74 (11.63).  A 3 s window, or a reservoir that starts from the bootstrap's lock, leans on the
+    video's shape more than a whole take does."""
+    c = SolverConfig(**overrides)
+    return replace(c, pose_fitting=replace(c.pose_fitting, shape_weight=PoseFittingConfig().shape_weight))
+
+
 def fast_bootstrap_config() -> SolverConfig:
     """The offline solver with budgets for a 2-3 s window (beyond the paper: speed).  Same stages,
     fewer L-BFGS iterations and frames (the window is short and re-solved continuously later)."""
-    c = SolverConfig()
+    c = windowed_staged_config()
     return replace(
         c,
         screening_frames=20,
@@ -252,7 +264,7 @@ class WindowedSolverConfig:
     # screened (session 9: the same refined MPJPE to 0.1 mm on 7 sessions, upgrades 32-48 -> 22-31 s):
     # the reservoir spans the take, its registration is reliable, and a wrong pick cannot do harm -
     # an upgrade is adopted only when the reservoir fits better under it (_finish_upgrade).
-    upgrade_solver: SolverConfig | None = field(default_factory=lambda: SolverConfig(max_hypotheses=1))
+    upgrade_solver: SolverConfig | None = field(default_factory=lambda: windowed_staged_config(max_hypotheses=1))
     # Longest time gap (s) the upgrade's Stage 2 may interpolate its start across (see _solve_upgrade).
     upgrade_max_interpolation_s: float = 0.35
     # Adopt an upgrade when the reservoir re-solved under it fits better than this times the
