@@ -105,6 +105,8 @@ def test_bootstrap_locks_the_best_fitting_start(streamed):
     assert len(fits) == 1 + len(s.config.bootstrap_alternatives) == 2 and all(f is not None for f in fits)
     assert s.stats["bootstrap_start_chosen"] == int(np.argmin(fits))
     assert s.last_bootstrap["stage5_marker_fit_mm"] == pytest.approx(min(fits), abs=1e-3)
+    # the locked start made the per-marker point choice (the markers that took the prior's point)
+    assert isinstance(s.last_bootstrap["prior_placement_markers"], list)
 
 
 def test_bootstrap_skips_a_failing_start_and_reports_when_all_fail(streamed):
