@@ -110,6 +110,13 @@ class ModelCache:
         # SurfacePoints object lives (solvers evaluate the same points every iteration).
         self._points: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
+    def __getstate__(self) -> dict:
+        # a pickled model (e.g. sent to a solver worker process) rebuilds its derived tensors there
+        return {"_m": self._m}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(state["_m"])
+
     def point_data(self, points: "SurfacePoints") -> tuple:
         """(template (3,n), shapedirs (nb,3,n), weights (J,n), posedirs (207,3,n)|None, corner weights (P,K))."""
         hit = self._points.get(points)

@@ -37,7 +37,9 @@ from __future__ import annotations
 import math
 import threading
 import time
+import weakref
 from collections import deque
+from concurrent.futures import BrokenExecutor
 from itertools import chain
 from dataclasses import dataclass, field, replace
 
@@ -72,6 +74,7 @@ from uuomocap.solver_core.staged_solver import (
     preload_lazy_imports,
     solve,
 )
+from uuomocap.solver_core.solve_worker import SolveCancelled
 
 N_POSE = 72  # root (before the yaw) + 23 body joints, axis-angle
 N_PARAMS = N_POSE + 3  # + translation
@@ -182,6 +185,11 @@ class WindowedSolverConfig:
     # and the solver lands in different minima from slightly different starts (part matching on 24
     # or 48 frames: first-4-s refined MPJPE 15.8 vs 8.4 mm on one take, 18.4 vs 22.6 on another).
     bootstrap_alternatives: tuple[SolverConfig, ...] = field(default_factory=lambda: (bootstrap_alternative_config(),))
+    # Solve the bootstrap alternatives and the background lock upgrades in a warm worker process
+    # (``solve_worker``), started with the solver.  False: on threads of this process, which share
+    # its interpreter lock - on the 2-core CPU (demo walk, 40 markers) one start alone 18.5 s, two
+    # starts on two threads 50.2 s wall, in a worker process 19.8 s.
+    worker_process: bool = True
     # Energy terms shared with the offline Stage 4 (paper: lambda_M 1, delta 9.5 mm).  Beyond the
     # paper, lambda_Theta = 1 instead of 0.1: the per-frame solves are exact where offline L-BFGS
     # stops early, and with the paper's weight they over-fit the markers along poorly observed
@@ -528,6 +536,12 @@ class WindowedSolver:
         self._desc = D
         self._parents = np.asarray(parents)
         self._levels = [(ids.numpy(), par.numpy()) for ids, par in lbs.kinematic_levels(model.parents)]
+        self._worker = None
+        if config.worker_process and (config.bootstrap_alternatives or config.upgrade_in_background):
+            from uuomocap.solver_core.solve_worker import StagedSolveWorker
+
+            self._worker = StagedSolveWorker(model, self.chamfer_model)  # its imports run beside the first frames
+            weakref.finalize(self, self._worker.close)
         self._one_point = lbs.SurfacePoints.from_vertex_ids(torch.zeros(1, dtype=torch.long))
         self.reset()
 
@@ -643,11 +657,20 @@ class WindowedSolver:
             out += self._refine(min(len(self._pending), self.config.lag_frames + self.config.hop_frames), final=True)
         return out
 
+    def __getstate__(self) -> dict:
+        """Copies (``copy.deepcopy``, pickles) leave the worker process and thread pool behind: a
+        copy runs its extra bootstrap starts and upgrades on threads."""
+        state = dict(self.__dict__)
+        state["_worker"], state["_executor"], state["_upgrade_job"] = None, None, None
+        return state
+
     def cancel_upgrade(self) -> None:
         """Stop a background lock upgrade at its next optimiser step (its result is dropped)."""
         job = getattr(self, "_upgrade_job", None)
         if job is not None:
             job[1]["cancel"].set()
+            if "worker_job" in job[1]:
+                self._worker.cancel_upto(job[1]["worker_job"])
 
     def close(self) -> None:
         """Cancel a running upgrade and release the worker thread (the solver stays usable)."""
@@ -655,6 +678,9 @@ class WindowedSolver:
         if self._executor is not None:
             self._executor.shutdown(wait=False)
             self._executor = None
+        if self._worker is not None:
+            self._worker.close()
+            self._worker = None
 
     @property
     def labels(self) -> MarkerLabelState | None:
@@ -794,14 +820,35 @@ class WindowedSolver:
             return run(configs[0])
         from concurrent.futures import ThreadPoolExecutor
 
-        with ThreadPoolExecutor(len(configs) - 1, thread_name_prefix="bootstrap") as pool:
-            others = [pool.submit(run, cfg) for cfg in configs[1:]]
+        def collect_one(cfg):
+            try:
+                return run(cfg)
+            except (ValueError, RuntimeError) as err:
+                return err
+
+        def collect(others):
             outcomes = []
             for job in [None, *others]:
                 try:
                     outcomes.append(run(configs[0]) if job is None else job.result())
-                except (ValueError, RuntimeError) as err:  # bad window or a numerical failure of that start
+                except (ValueError, RuntimeError) as err:  # bad window, a numerical failure, a dead worker
                     outcomes.append(err)
+            return outcomes
+
+        if self._worker is not None:
+            # the upgrade of an older lock would queue ahead of these
+            self.cancel_upgrade()
+            outcomes = collect([self._worker.submit(markers, vis, rate_hz, self.up_axis, prior, shape, cfg)[1] for cfg in configs[1:]])
+            if any(isinstance(o, BrokenExecutor) for o in outcomes):
+                # the worker could not start (e.g. a script that starts solving at import time, which
+                # a spawned interpreter re-runs) or died: solve those starts here, and use threads from now on
+                self.stats["worker_failed"] = str(next(o for o in outcomes if isinstance(o, BrokenExecutor)))
+                self._worker.close()
+                self._worker = None
+                outcomes = [collect_one(cfg) if isinstance(o, BrokenExecutor) else o for cfg, o in zip(configs, outcomes)]
+        else:
+            with ThreadPoolExecutor(len(configs) - 1, thread_name_prefix="bootstrap") as pool:
+                outcomes = collect([pool.submit(run, cfg) for cfg in configs[1:]])
         solved = [(i, r) for i, r in enumerate(outcomes) if not isinstance(r, Exception)]
         if not solved:
             raise outcomes[0]
@@ -1294,6 +1341,16 @@ class WindowedSolver:
             return  # nothing to start Stage 2 from but our own estimates / one already running
         job = self._upgrade_inputs()
         self.stats["upgrades_started"] = self.stats.get("upgrades_started", 0) + 1
+        if c.upgrade_in_background and self._worker is not None:
+            try:
+                job["worker_job"], future = self._worker.submit(job["markers"], job["visible"], self.rate_hz or 120.0, self.up_axis,
+                                                                job["prior"], job["shape"], self._upgrade_config(job))
+                self._upgrade_job = (future, job)
+                return
+            except BrokenExecutor as exc:  # the worker died: a thread from now on
+                self.stats["worker_failed"] = str(exc)
+                self._worker.close()
+                self._worker = None
         if c.upgrade_in_background:
             from concurrent.futures import ThreadPoolExecutor
 
@@ -1309,7 +1366,7 @@ class WindowedSolver:
             self._upgrade_job = None
             try:
                 res = future.result()
-            except UpgradeCancelled:
+            except (UpgradeCancelled, SolveCancelled):
                 self.stats["upgrades_cancelled"] = self.stats.get("upgrades_cancelled", 0) + 1
                 return
             except (ValueError, RuntimeError) as exc:  # e.g. no usable frame: keep the current lock
@@ -1334,6 +1391,10 @@ class WindowedSolver:
                 "frames": frames}
 
     def _solve_upgrade(self, job: dict):
+        return solve(job["markers"], job["visible"], self.rate_hz or 120.0, self.up_axis, job["prior"], job["shape"],
+                     self.model, self.chamfer_model, self._upgrade_config(job), progress=_StopWhenStale(self, job))
+
+    def _upgrade_config(self, job: dict) -> SolverConfig:
         c = self.config
         # The reservoir's frames are not consecutive: no smoothness terms.  The staged solver starts
         # Stage 2 from its screening frames interpolated in time, fine while they are a few tenths
@@ -1345,11 +1406,9 @@ class WindowedSolver:
         screening = min(base.screening_frames, n)
         if (n / max(screening, 1)) * job["stride"] / (self.rate_hz or 120.0) > c.upgrade_max_interpolation_s:
             screening = n
-        cfg = replace(base, ik=replace(base.ik, smoothness_weight=0.0),
-                      pose_fitting=replace(base.pose_fitting, smoothness_weight=0.0),
-                      screening_frames=screening, chamfer_frames=n)
-        return solve(job["markers"], job["visible"], self.rate_hz or 120.0, self.up_axis, job["prior"], job["shape"],
-                     self.model, self.chamfer_model, cfg, progress=_StopWhenStale(self, job))
+        return replace(base, ik=replace(base.ik, smoothness_weight=0.0),
+                       pose_fitting=replace(base.pose_fitting, smoothness_weight=0.0),
+                       screening_frames=screening, chamfer_frames=n)
 
     def _finish_upgrade(self, res, job: dict) -> None:
         """Adopt the upgrade's shape, yaw, tilt and correspondence when it explains the reservoir's

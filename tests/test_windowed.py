@@ -107,6 +107,8 @@ def test_bootstrap_locks_the_best_fitting_start(streamed):
     assert s.last_bootstrap["stage5_marker_fit_mm"] == pytest.approx(min(fits), abs=1e-3)
     # the locked start made the per-marker point choice (the markers that took the prior's point)
     assert isinstance(s.last_bootstrap["prior_placement_markers"], list)
+    # the second start ran in the solver's worker process (not a thread sharing the interpreter lock)
+    assert s._worker is not None and "worker_failed" not in s.stats
 
 
 def test_bootstrap_skips_a_failing_start_and_reports_when_all_fail(streamed):
@@ -331,6 +333,32 @@ def test_lock_upgrade_on_the_reservoir_repairs_a_wrong_lock(streamed):
     assert isinstance(future.exception(timeout=120), UpgradeCancelled)
     assert d.labels_version == version
     d.close()
+    # in the worker process (the default for live streams): the same lock, and a cancel stops it
+    from uuomocap.solver_core.solve_worker import SolveCancelled, StagedSolveWorker
+
+    worker = StagedSolveWorker(streamed["model"], streamed["chamfer"])
+    e = _mislocked_clone(streamed)
+    e.config = replace(e.config, upgrade_in_background=True)
+    e._worker = worker
+    e._upgrade_lock()
+    assert e._upgrade_job is not None and "worker_job" in e._upgrade_job[1]
+    e._upgrade_job[0].result(timeout=300)
+    e._poll_upgrade()
+    assert e.labels_version == version + 1 and "worker_failed" not in e.stats
+    np.testing.assert_array_equal(e.face_ids, upgraded_faces)
+    f = _mislocked_clone(streamed)
+    f.config = replace(f.config, upgrade_in_background=True)
+    f._worker = worker
+    f._upgrade_lock()
+    future = f._upgrade_job[0]
+    f.flush()  # cancels the running upgrade
+    assert isinstance(future.exception(timeout=120), SolveCancelled)
+    f._poll_upgrade()
+    assert f.labels_version == version
+    f.close()  # closes the worker
+    assert f._worker is None
+    with pytest.raises(RuntimeError, match="shutdown"):
+        worker.submit(None, None, 30.0, "+z", None, None, None)
 
 
 def test_reservoir_stays_bounded_and_spread_over_a_long_take(streamed):

@@ -1,0 +1,107 @@
+"""A warm worker process that runs the staged solver (``staged_solver.solve``) beside the caller.
+
+Why a process and not a thread: the staged solver is thousands of small torch calls driven from
+Python, so two solves on two threads share one interpreter lock and run one after the other, with
+lock hand-over on top.  Measured on the 2-core CPU (the demo's 8 s walk, 40 markers): one bootstrap
+start 18.5 s alone; two starts on two threads 50.2 s wall, slower than running them in turn.  A
+steady-state stream beside a background lock upgrade on a thread loses its frame rate the same way.
+In a worker process each solve has its own interpreter and the second core does the work.
+
+The worker is started ("spawn": a fresh interpreter, no inherited locks or thread pools) when the
+pool is built, so its imports (~3-5 s) are paid before the first job, not inside it.  The body models
+go over once, at start-up.  Jobs and results travel as pickles between this process and its own
+child (never data from outside the program).  A job is cancelled by its id: the worker's progress
+hook checks a shared counter at every stage and optimiser step and raises ``SolveCancelled``.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+from concurrent.futures import Future, ProcessPoolExecutor
+
+from uuomocap.solver_core.staged_solver import SolverProgress
+
+
+class SolveCancelled(RuntimeError):
+    """The job was cancelled while it ran (its result is no longer wanted)."""
+
+
+class _CancelledBelow(SolverProgress):
+    """Raises ``SolveCancelled`` once the caller has cancelled every job up to this one's id."""
+
+    def __init__(self, job_id: int, cancelled_upto):
+        self.job_id, self.cancelled_upto = job_id, cancelled_upto
+
+    def _check(self) -> None:
+        if self.cancelled_upto.value >= self.job_id:
+            raise SolveCancelled(f"staged solve #{self.job_id} cancelled")
+
+    def stage_start(self, name: str, detail: str = "") -> None:
+        self._check()
+
+    def stage_step(self, name: str, iterations: int, loss: float) -> None:
+        self._check()
+
+
+# The worker process's state, set once by its initializer (per child process; the parent never
+# touches it).
+_worker_state: dict = {}
+
+
+def _init_worker(model, chamfer_model, cancelled_upto) -> None:
+    import torch
+    from threadpoolctl import threadpool_limits
+
+    from uuomocap.solver_core.staged_solver import preload_lazy_imports
+
+    torch.set_num_threads(1)  # one core per solve: the caller uses the other
+    threadpool_limits(1, user_api="blas")
+    preload_lazy_imports()
+    _worker_state.update(model=model, chamfer_model=chamfer_model, cancelled_upto=cancelled_upto)
+
+
+def _ready() -> bool:
+    return bool(_worker_state)
+
+
+def _run_solve(job_id: int, markers, visible, rate_hz, up_axis, prior, shape, config):
+    from uuomocap.solver_core.staged_solver import solve
+
+    s = _worker_state
+    return solve(markers, visible, rate_hz, up_axis, prior, shape, s["model"], s["chamfer_model"], config,
+                 progress=_CancelledBelow(job_id, s["cancelled_upto"]))
+
+
+class StagedSolveWorker:
+    """One warm worker process running ``staged_solver.solve`` jobs in submission order.
+
+    model / chamfer_model: the body models every job uses (sent to the worker once).
+    ``submit(...)`` takes ``solve``'s data arguments and config and returns (job id, Future);
+    ``cancel_upto(job_id)`` cancels that job and every earlier one; ``close()`` ends the worker.
+    """
+
+    def __init__(self, model, chamfer_model=None):
+        ctx = mp.get_context("spawn")
+        self._cancelled_upto = ctx.Value("q", 0, lock=False)
+        self._next_id = 0
+        self._pool = ProcessPoolExecutor(1, mp_context=ctx, initializer=_init_worker,
+                                         initargs=(model, chamfer_model or model, self._cancelled_upto))
+        self._warm = self._pool.submit(_ready)  # starts the process and its imports now
+
+    def ready(self, timeout: float | None = None) -> bool:
+        """Wait up to timeout seconds for the worker's start-up; whether it is ready."""
+        try:
+            return bool(self._warm.result(timeout))
+        except TimeoutError:
+            return False
+
+    def submit(self, markers, visible, rate_hz, up_axis, prior, shape, config) -> tuple[int, Future]:
+        self._next_id += 1
+        return self._next_id, self._pool.submit(_run_solve, self._next_id, markers, visible, rate_hz, up_axis, prior, shape, config)
+
+    def cancel_upto(self, job_id: int) -> None:
+        self._cancelled_upto.value = max(self._cancelled_upto.value, int(job_id))
+
+    def close(self) -> None:
+        self.cancel_upto(self._next_id)
+        self._pool.shutdown(wait=False, cancel_futures=True)
