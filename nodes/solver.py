@@ -9,7 +9,8 @@ ends ``body/solved``.
 
 Deterministic in lockstep: a frame only ever uses priors stamped at or before it (the replay's
 'solver:body/prior' credit guarantees those arrived), and each solve is single-threaded (the
-bootstrap solves its two starts on two threads, each one deterministic; the best fit wins).
+bootstrap solves its second start in the solver's worker process, each one deterministic; the best
+fit wins).
 """
 
 from __future__ import annotations
@@ -35,9 +36,9 @@ class SolverNodeConfig:
     publish_estimates: bool = True
     threads: int = 1  # torch intra-op threads (1 = deterministic and leaves a core to the graph)
     # lock upgrades (the staged solver on frames spread over the take, ~30-60 s each time the take
-    # doubles) on a worker thread: true for live streams (no stall), false keeps replays deterministic
+    # grows 1.5x) in the worker process: true for live streams (no stall), false keeps replays deterministic
     upgrade_in_background: bool = False
-    # bootstrap starts solved side by side on their own threads (the best marker fit is locked);
+    # bootstrap starts solved side by side, the second in a worker process (the best marker fit is locked);
     # 1 = only the first, for a machine whose second core the rest of the graph needs at start-up
     bootstrap_starts: int = 2
 

@@ -178,8 +178,8 @@ class WindowedSolverConfig:
     bootstrap_rate_hz: float = 30.0
     # The offline staged solver used for (re-)bootstraps.
     bootstrap_solver: SolverConfig = field(default_factory=fast_bootstrap_config)
-    # Beyond the paper: the bootstrap also solves the window under each of these configs, on worker
-    # threads beside the first (2 cores: about the wall time of one), and locks the result whose
+    # Beyond the paper: the bootstrap also solves the window under each of these configs, in the
+    # worker process beside the first (2 cores: about the wall time of one), and locks the result whose
     # markers fit best (most markers placed, then the lowest Stage-5 fit) - multiple hypotheses, as
     # Stage 1's yaws, over the part matching's start.  On 3 s the correspondence is weakly observed
     # and the solver lands in different minima from slightly different starts (part matching on 24
@@ -808,7 +808,8 @@ class WindowedSolver:
 
     def _solve_bootstrap_window(self, markers: np.ndarray, vis: np.ndarray, rate_hz: float, prior: BodyPrior, shape: np.ndarray):
         """The staged solver on the bootstrap window (markers (S,M,3), vis (S,M)) under
-        ``bootstrap_solver`` and each of ``bootstrap_alternatives`` (worker threads); the result
+        ``bootstrap_solver`` and each of ``bootstrap_alternatives`` (in the worker process, or
+        on threads); the result
         with the most markers placed, then the lowest Stage-5 marker fit.  A start that fails
         is skipped; when all fail, the first one's error is raised."""
         configs = (self.config.bootstrap_solver, *self.config.bootstrap_alternatives)
@@ -1332,9 +1333,9 @@ class WindowedSolver:
 
     def _upgrade_lock(self) -> None:
         """Start a lock upgrade: the offline staged solver on the reservoir (frames spread over the
-        take so far, with their video priors).  Synchronous, or on a worker thread when
-        ``upgrade_in_background`` (the estimates go on meanwhile; the result is adopted at the
-        first frame after it is ready)."""
+        take so far, with their video priors).  Synchronous, or in the worker process (a thread
+        when ``worker_process`` is off) when ``upgrade_in_background`` (the estimates go on
+        meanwhile; the result is adopted at the first frame after it is ready)."""
         c = self.config
         self._locked_span = self._reservoir_seen
         if not self.has_prior or self._upgrade_job is not None:
