@@ -83,13 +83,23 @@ class Solver(Node):
             self.solver_config = replace(self.solver_config, bootstrap_alternatives=())
         self.solver = None
         self.rate_hz = 0.0
+        # the worker process (second bootstrap start, background upgrades) starts now, not at the
+        # first marker frame: its imports then run before the take, not inside the bootstrap
+        self.worker = None
+        sc = self.solver_config
+        if sc.worker_process and (sc.bootstrap_alternatives or sc.upgrade_in_background):
+            from uuomocap.solver_core.solve_worker import StagedSolveWorker
+
+            self.worker = StagedSolveWorker(self.model, self.chamfer_model)
         self.log.info("solver: %s, bootstrap %.1fs, lag %d frames", c.body_model, c.bootstrap_s, c.lag_frames)
 
     def _make_solver(self, msg) -> None:
         from uuomocap.solver_core.windowed_solver import WindowedSolver
 
         self.rate_hz = float(msg.rate_hz) if msg.rate_hz > 0 else 0.0
-        self.solver = WindowedSolver(self.model, self.solver_config, msg.up_axis, self.rate_hz or None, self.chamfer_model)
+        self.solver = WindowedSolver(self.model, self.solver_config, msg.up_axis, self.rate_hz or None, self.chamfer_model,
+                                     worker=self.worker)
+        self.worker = None  # the solver owns it now
         for row in getattr(self, "_early_priors", []):
             self.solver.add_prior(*row)
         self._early_priors = []
@@ -134,7 +144,9 @@ class Solver(Node):
 
     def teardown(self) -> None:
         if self.solver is not None:
-            self.solver.close()  # a lock upgrade still running on its worker thread stops at its next step
+            self.solver.close()  # a lock upgrade still running in the worker stops at its next step; the worker ends
+        if self.worker is not None:
+            self.worker.close()
 
     def _labels(self) -> tuple:
         """(faces, bary, parts) of the current correspondence; the part names (~0.4 ms) are only

@@ -502,11 +502,14 @@ class WindowedSolver:
 
     model: output body model (IK, correspondence); chamfer_model: low-resolution model for the
     bootstrap's chamfer stages (None = model); up_axis: capture world up ('+z'...); rate_hz:
-    nominal marker rate (None: estimated from the stamps of the bootstrap window).
+    nominal marker rate (None: estimated from the stamps of the bootstrap window); worker: a
+    ``solve_worker.StagedSolveWorker`` on the same models started earlier (a node starts it before
+    the take: ~6 s of imports on the 2-core CPU), owned by the solver from here on (None: the solver
+    starts its own when ``worker_process`` needs one).
     """
 
     def __init__(self, model, config: WindowedSolverConfig = WindowedSolverConfig(), up_axis: str = "+z",
-                 rate_hz: float | None = None, chamfer_model=None):
+                 rate_hz: float | None = None, chamfer_model=None, worker=None):
         self.model = model
         self.chamfer_model = chamfer_model or model
         self.config = config
@@ -540,10 +543,19 @@ class WindowedSolver:
         if config.worker_process and (config.bootstrap_alternatives or config.upgrade_in_background):
             from uuomocap.solver_core.solve_worker import StagedSolveWorker
 
-            self._worker = StagedSolveWorker(model, self.chamfer_model)  # its imports run beside the first frames
+            self._worker = worker or StagedSolveWorker(model, self.chamfer_model)  # its imports run beside the first frames
             weakref.finalize(self, self._worker.close)
+        elif worker is not None:
+            worker.close()
+
         self._one_point = lbs.SurfacePoints.from_vertex_ids(torch.zeros(1, dtype=torch.long))
         self.reset()
+
+    def wait_worker(self, timeout: float | None = None) -> bool:
+        """Wait up to timeout seconds for the worker process's start-up (True when ready or when
+        the solver uses none): a driver that starts solving at once calls this first, as a live
+        solver is up before the take begins."""
+        return self._worker is None or self._worker.ready(timeout)
 
     # ------------------------------------------------------------------ public API
     def reset(self) -> None:

@@ -86,6 +86,7 @@ def stream_solve(session_dir: Path, body_model: str | None = None, config=None, 
     md, rows, up_axis, session_model, _ = session_stream(session_dir)
     model, chamfer_model = load_models(body_model or session_model)
     solver = WindowedSolver(model, config or WindowedSolverConfig(), up_axis, float(md.rate_hz), chamfer_model)
+    solver.wait_worker(120)  # a live solver is up before the take starts; the replay starts at once
     T = md.positions.shape[0] if max_frames is None else min(max_frames, md.positions.shape[0])
     est = {"poses": np.full((T, 72), np.nan), "trans": np.full((T, 3), np.nan), "joints": np.full((T, 24, 3), np.nan)}
     ref = {k: v.copy() for k, v in est.items()}

@@ -77,7 +77,7 @@ def bench_session(sdir: Path, offline: bool, bar) -> dict:
 
     from uuomocap.solver_core.windowed_solver import WindowedSolverConfig
 
-    # as the live launch files run it: lock upgrades on a worker thread beside the estimates
+    # as the live launch files run it: lock upgrades in the worker process beside the estimates
     run = stream_solve(sdir, realtime=True, config=replace(WindowedSolverConfig(), upgrade_in_background=True))
     lag_ms = 1000.0 * run.stats.get("lag_frames", 10) / run.rate_hz
     res = {
@@ -209,7 +209,7 @@ def run(args) -> int:
         f"{Path(r['session']).name[:16]} " + " / ".join(("-" if f is None else f"{f:.2f}") + ("*" if i == r["bootstrap_start_chosen"] else "")
                                                        for i, f in enumerate(r["bootstrap_start_fits_mm"] or []))
         for r in rows))
-    lines.append("lock upgrades (worker thread; one still running when the take ends is dropped): " + "; ".join(
+    lines.append("lock upgrades (worker process; one still running when the take ends is dropped): " + "; ".join(
         f"{n} {k0} started, {k} adopted or refused in {', '.join(f'{x:.1f}' for x in t) or '-'} s" for n, k0, k, t in ups))
     if long:
         for name, m in long["marks"].items():
