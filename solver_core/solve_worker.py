@@ -17,7 +17,7 @@ hook checks a shared counter at every stage and optimiser step and raises ``Solv
 from __future__ import annotations
 
 import multiprocessing as mp
-from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures import BrokenExecutor, Future, ProcessPoolExecutor
 
 from uuomocap.solver_core.staged_solver import SolverProgress
 
@@ -84,6 +84,7 @@ class StagedSolveWorker:
         ctx = mp.get_context("spawn")
         self._cancelled_upto = ctx.Value("q", 0, lock=False)
         self._next_id = 0
+        self.broken = False
         self._pool = ProcessPoolExecutor(1, mp_context=ctx, initializer=_init_worker,
                                          initargs=(model, chamfer_model or model, self._cancelled_upto))
         self._warm = self._pool.submit(_ready)  # starts the process and its imports now
@@ -94,10 +95,21 @@ class StagedSolveWorker:
             return bool(self._warm.result(timeout))
         except TimeoutError:
             return False
+        except BrokenExecutor:  # could not start (the caller falls back to threads)
+            self.broken = True
+            return False
 
     def submit(self, markers, visible, rate_hz, up_axis, prior, shape, config) -> tuple[int, Future]:
+        """(job id, Future of the SolveResult).  A worker that died or could not start gives a
+        Future holding ``BrokenExecutor`` (and ``broken`` is True from then on)."""
         self._next_id += 1
-        return self._next_id, self._pool.submit(_run_solve, self._next_id, markers, visible, rate_hz, up_axis, prior, shape, config)
+        try:
+            return self._next_id, self._pool.submit(_run_solve, self._next_id, markers, visible, rate_hz, up_axis, prior, shape, config)
+        except BrokenExecutor as exc:
+            self.broken = True
+            failed: Future = Future()
+            failed.set_exception(exc)
+            return self._next_id, failed
 
     def cancel_upto(self, job_id: int) -> None:
         self._cancelled_upto.value = max(self._cancelled_upto.value, int(job_id))

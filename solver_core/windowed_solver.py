@@ -1354,16 +1354,15 @@ class WindowedSolver:
             return  # nothing to start Stage 2 from but our own estimates / one already running
         job = self._upgrade_inputs()
         self.stats["upgrades_started"] = self.stats.get("upgrades_started", 0) + 1
+        if self._worker is not None and self._worker.broken:  # it died or never started: threads from now on
+            self.stats["worker_failed"] = "worker process not usable"
+            self._worker.close()
+            self._worker = None
         if c.upgrade_in_background and self._worker is not None:
-            try:
-                job["worker_job"], future = self._worker.submit(job["markers"], job["visible"], self.rate_hz or 120.0, self.up_axis,
-                                                                job["prior"], job["shape"], self._upgrade_config(job))
-                self._upgrade_job = (future, job)
-                return
-            except BrokenExecutor as exc:  # the worker died: a thread from now on
-                self.stats["worker_failed"] = str(exc)
-                self._worker.close()
-                self._worker = None
+            job["worker_job"], future = self._worker.submit(job["markers"], job["visible"], self.rate_hz or 120.0, self.up_axis,
+                                                            job["prior"], job["shape"], self._upgrade_config(job))
+            self._upgrade_job = (future, job)
+            return
         if c.upgrade_in_background:
             from concurrent.futures import ThreadPoolExecutor
 

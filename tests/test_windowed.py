@@ -128,6 +128,31 @@ def test_bootstrap_skips_a_failing_start_and_reports_when_all_fail(streamed):
         s._solve_bootstrap_window(md.positions[sel], md.visible[sel], md.rate_hz / 2, prior, shape)
 
 
+def test_bootstrap_falls_back_to_this_process_when_the_worker_died(streamed):
+    import multiprocessing
+    import os
+    import signal
+
+    from uuomocap.solver_core.solve_worker import StagedSolveWorker
+
+    md = streamed["md"]
+    sel = np.arange(0, 45, 2)  # 1.5 s at 15 Hz: a cheap window
+    ref = _clone(streamed)  # a copy has no worker: its second start runs on a thread
+    assert ref._worker is None
+    prior, shape, _ = ref._prior_window(np.asarray(md.stamps_ns)[sel])
+    expected = ref._solve_bootstrap_window(md.positions[sel], md.visible[sel], md.rate_hz / 2, prior, shape)
+    s = _clone(streamed)
+    before = set(multiprocessing.active_children())
+    s._worker = StagedSolveWorker(streamed["model"], streamed["chamfer"])
+    assert s.wait_worker(120)
+    for child in set(multiprocessing.active_children()) - before:
+        os.kill(child.pid, signal.SIGKILL)  # the worker dies (out of memory, killed by hand...)
+    res = s._solve_bootstrap_window(md.positions[sel], md.visible[sel], md.rate_hz / 2, prior, shape)
+    assert "worker_failed" in s.stats and s._worker is None
+    assert s.stats["bootstrap_start_fits_mm"] == ref.stats["bootstrap_start_fits_mm"]
+    np.testing.assert_array_equal(res.attachment.face_ids.numpy(), expected.attachment.face_ids.numpy())
+
+
 def test_refined_accuracy_close_to_offline(streamed, session):
     from uuomocap.solver_core.metrics import mpjpe, mpjve
     from uuomocap.solver_core.windowed_solver import fast_bootstrap_config
