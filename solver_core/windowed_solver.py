@@ -188,7 +188,7 @@ class WindowedSolverConfig:
     # Solve the bootstrap alternatives and the background lock upgrades in a warm worker process
     # (``solve_worker``), started with the solver.  False: on threads of this process, which share
     # its interpreter lock - on the 2-core CPU (demo walk, 40 markers) one start alone 18.5 s, two
-    # starts on two threads 50.2 s wall, in a worker process 19.8 s.
+    # starts on two threads 50.2 s wall, with the second in a warm worker process 22.2 s.
     worker_process: bool = True
     # Energy terms shared with the offline Stage 4 (paper: lambda_M 1, delta 9.5 mm).  Beyond the
     # paper, lambda_Theta = 1 instead of 0.1: the per-frame solves are exact where offline L-BFGS
@@ -676,6 +676,12 @@ class WindowedSolver:
         state["_worker"], state["_executor"], state["_upgrade_job"] = None, None, None
         return state
 
+    def _drop_broken_worker(self) -> None:
+        """The worker process died or never started: threads from now on."""
+        self.stats["worker_failed"] = "the worker process died or could not start"
+        self._worker.close()
+        self._worker = None
+
     def cancel_upgrade(self) -> None:
         """Stop a background lock upgrade at its next optimiser step (its result is dropped)."""
         job = getattr(self, "_upgrade_job", None)
@@ -833,32 +839,23 @@ class WindowedSolver:
             return run(configs[0])
         from concurrent.futures import ThreadPoolExecutor
 
-        def collect_one(cfg):
+        def outcome(fn):
             try:
-                return run(cfg)
-            except (ValueError, RuntimeError) as err:
+                return fn()
+            except (ValueError, RuntimeError) as err:  # bad window, a numerical failure, a dead worker
                 return err
 
-        def collect(others):
-            outcomes = []
-            for job in [None, *others]:
-                try:
-                    outcomes.append(run(configs[0]) if job is None else job.result())
-                except (ValueError, RuntimeError) as err:  # bad window, a numerical failure, a dead worker
-                    outcomes.append(err)
-            return outcomes
+        def collect(others):  # the first start here while the others run elsewhere
+            return [outcome(lambda: run(configs[0])), *(outcome(job.result) for job in others)]
 
         if self._worker is not None:
-            # the upgrade of an older lock would queue ahead of these
-            self.cancel_upgrade()
+            self.cancel_upgrade()  # the upgrade of an older lock would queue ahead of these
             outcomes = collect([self._worker.submit(markers, vis, rate_hz, self.up_axis, prior, shape, cfg)[1] for cfg in configs[1:]])
-            if any(isinstance(o, BrokenExecutor) for o in outcomes):
-                # the worker could not start (e.g. a script that starts solving at import time, which
-                # a spawned interpreter re-runs) or died: solve those starts here, and use threads from now on
-                self.stats["worker_failed"] = str(next(o for o in outcomes if isinstance(o, BrokenExecutor)))
-                self._worker.close()
-                self._worker = None
-                outcomes = [collect_one(cfg) if isinstance(o, BrokenExecutor) else o for cfg, o in zip(configs, outcomes)]
+            if self._worker.broken or any(isinstance(o, BrokenExecutor) for o in outcomes):
+                # it could not start (e.g. a script that starts solving at import time, which a
+                # spawned interpreter re-runs) or died: solve those starts here
+                self._drop_broken_worker()
+                outcomes = [outcome(lambda c=cfg: run(c)) if isinstance(o, BrokenExecutor) else o for cfg, o in zip(configs, outcomes)]
         else:
             with ThreadPoolExecutor(len(configs) - 1, thread_name_prefix="bootstrap") as pool:
                 outcomes = collect([pool.submit(run, cfg) for cfg in configs[1:]])
@@ -1354,10 +1351,8 @@ class WindowedSolver:
             return  # nothing to start Stage 2 from but our own estimates / one already running
         job = self._upgrade_inputs()
         self.stats["upgrades_started"] = self.stats.get("upgrades_started", 0) + 1
-        if self._worker is not None and self._worker.broken:  # it died or never started: threads from now on
-            self.stats["worker_failed"] = "worker process not usable"
-            self._worker.close()
-            self._worker = None
+        if self._worker is not None and self._worker.broken:
+            self._drop_broken_worker()
         if c.upgrade_in_background and self._worker is not None:
             job["worker_job"], future = self._worker.submit(job["markers"], job["visible"], self.rate_hz or 120.0, self.up_axis,
                                                             job["prior"], job["shape"], self._upgrade_config(job))
@@ -1382,6 +1377,8 @@ class WindowedSolver:
                 self.stats["upgrades_cancelled"] = self.stats.get("upgrades_cancelled", 0) + 1
                 return
             except (ValueError, RuntimeError) as exc:  # e.g. no usable frame: keep the current lock
+                if isinstance(exc, BrokenExecutor) and self._worker is not None:
+                    self._drop_broken_worker()
                 self.stats["upgrade_errors"] = self.stats.get("upgrade_errors", 0) + 1
                 self.stats["last_upgrade_error"] = str(exc)
                 return
