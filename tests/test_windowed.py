@@ -485,3 +485,46 @@ def test_per_frame_model_matches_the_staged_solver_marker_models(streamed):
         with torch.no_grad():
             expected = predicted_markers(s.model, params, s._attachment(), s.up, s.config.ik.marker_offset_m, offset_model)
         assert np.abs(lin["pred"] - expected.double().numpy()).max() < 1e-4, offset_model
+
+
+def test_worker_process_ends_when_its_parent_is_killed(tmp_path):
+    """A solver killed hard (SIGKILL: no pool shutdown) must not leave its worker process behind."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    script = tmp_path / "parent.py"
+    script.write_text(
+        "import time\n"
+        "from uuomocap.solver_core.body_model import load_body_model\n"
+        "from uuomocap.solver_core.solve_worker import StagedSolveWorker\n"
+        "if __name__ == '__main__':\n"
+        "    w = StagedSolveWorker(load_body_model('open-low'))\n"
+        "    assert w.ready(120)\n"
+        "    print(w.pid, flush=True)\n"
+        "    time.sleep(300)\n"
+    )
+    parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    try:
+        worker_pid = int(parent.stdout.readline())
+        assert worker_pid != parent.pid
+
+        def alive(pid):
+            try:
+                with open(f"/proc/{pid}/stat") as f:
+                    return f.read().rsplit(")", 1)[1].split()[0] != "Z"  # a zombie has exited
+            except FileNotFoundError:
+                return False
+
+        assert alive(worker_pid)
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(10)
+        deadline = time.monotonic() + 15
+        while alive(worker_pid) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert not alive(worker_pid), "the worker outlived its killed parent"
+    finally:
+        parent.kill()
+        parent.wait(10)
