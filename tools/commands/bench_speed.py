@@ -66,6 +66,22 @@ def _rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
 
 
+def _proc_memory_mib(pid: int | str = "self") -> dict:
+    """Resident memory of a process now (VmRSS) and its peak (VmHWM), MiB; {} where /proc has
+    no such process.  The peak is over the process's life (here: the offline solves before the
+    long take), so flat memory shows in the resident size now, measured at both marks."""
+    out = {}
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                if key in ("VmRSS", "VmHWM"):
+                    out["rss_mib" if key == "VmRSS" else "peak_mib"] = round(int(value.split()[0]) / 1024.0, 1)
+    except (FileNotFoundError, ProcessLookupError, ValueError):
+        pass
+    return out
+
+
 def bench_session(sdir: Path, offline: bool, bar) -> dict:
     from uuomocap.solver_core.metrics import mpjpe, mpjve
     from uuomocap.window_methods import estimate_metrics, session_stream, stream_solve
@@ -116,6 +132,8 @@ def bench_session(sdir: Path, offline: bool, bar) -> dict:
 
 def long_take(sdir: Path, minutes: float, rate_hz: float, bar) -> dict:
     """Loop a session back and forth (continuous motion) for ``minutes`` at ``rate_hz``."""
+    from dataclasses import replace
+
     import torch
 
     from uuomocap.nodes.solver import load_models
@@ -133,7 +151,9 @@ def long_take(sdir: Path, minutes: float, rate_hz: float, bar) -> dict:
     prior_t = np.array([r[0] for r in rows], np.int64)
     src_t = np.asarray(md.stamps_ns[::step], np.int64)
     model, chamfer = load_models(body_model)
-    solver = WindowedSolver(model, WindowedSolverConfig(), up_axis, rate, chamfer)
+    # as the live launch files run it: lock upgrades in the worker process beside the estimates
+    solver = WindowedSolver(model, replace(WindowedSolverConfig(), upgrade_in_background=True), up_axis, rate, chamfer)
+    solver.wait_worker(120)
     total = int(round(minutes * 60 * rate))
     marks: dict = {}
     t0 = time.perf_counter()
@@ -149,11 +169,15 @@ def long_take(sdir: Path, minutes: float, rate_hz: float, bar) -> dict:
             next_prior = st + int(round(1e9 / 30.0))
         solver.add_markers(st, pos[j], vis[j])
         if k + 1 == int(round(60 * rate)) or k + 1 == total:
-            marks[f"{(k + 1) / rate / 60:.0f}min"] = {"peak_rss_mib": round(_rss_mib(), 1), "buffers": solver.buffer_sizes(),
-                                                      "wall_s": round(time.perf_counter() - t0, 1)}
+            worker = solver._worker
+            marks[f"{(k + 1) / rate / 60:.0f}min"] = {
+                "peak_rss_mib": round(_rss_mib(), 1), "solver_memory": _proc_memory_mib(),
+                "worker_memory": _proc_memory_mib(worker.pid) if worker is not None and worker.pid else {},
+                "buffers": solver.buffer_sizes(), "wall_s": round(time.perf_counter() - t0, 1)}
         if k % 200 == 0:
             bar.set_postfix_str(f"long take {k / rate / 60:.1f}/{minutes:g} min")
     solver.flush()
+    solver.close()
     return {"minutes": minutes, "rate_hz": rate, "frames": total, "marks": marks, "stats": {k: v for k, v in solver.stats.items() if k != "bootstrap_seconds"}}
 
 
@@ -213,7 +237,9 @@ def run(args) -> int:
         f"{n} {k0} started, {k} adopted or refused in {', '.join(f'{x:.1f}' for x in t) or '-'} s" for n, k0, k, t in ups))
     if long:
         for name, m in long["marks"].items():
-            lines.append(f"long take {name}: peak RSS {m['peak_rss_mib']:.1f} MiB, buffers {m['buffers']}, wall {m['wall_s']:.0f} s")
+            mem = "; ".join(f"{who} RSS {d['rss_mib']:.1f} MiB (peak {d['peak_mib']:.1f})"
+                            for who, d in (("solver", m.get("solver_memory", {})), ("worker", m.get("worker_memory", {}))) if d)
+            lines.append(f"long take {name}: {mem or 'peak RSS %.1f MiB' % m['peak_rss_mib']}, buffers {m['buffers']}, wall {m['wall_s']:.0f} s")
     text = "\n".join(lines)
     print(text)
     if args.json:
