@@ -39,6 +39,9 @@ class Segmenter(Node):
         "prior": Port("body/prior", types=("BodyPrior",), optional=True),
     }
     PUBLISHES = {"labels": "markers/labels"}
+    # a labelling in progress (offline stages, niced: ~5-30 s on a loaded 2-core machine) finishes
+    # before the node stops; with the default 10 s the stop alarm killed it mid-way (exit by SIGALRM)
+    STOP_TIMEOUT_S = 60
 
     def setup(self) -> None:
         import torch

@@ -26,7 +26,11 @@ def run_graph(tmp_path: Path, session: Path, out: Path, tag: str) -> int:
                                  "bootstrap_s:=1.5", "--log-dir", str(logs)], stdout=log, stderr=log, stdin=subprocess.DEVNULL,
                                 start_new_session=True)
     try:
-        return proc.wait(DEADLINE)
+        code = proc.wait(DEADLINE)
+        if code != 0:  # which node ended how (the launcher says) and every node's last lines
+            tails = {f.name: f.read_text(errors="replace").splitlines()[-8:] for f in sorted(logs.glob("*.log"))}
+            print(f"graph exited with {code}:\n" + "\n".join(f"--- {k}\n" + "\n".join(v) for k, v in tails.items()))
+        return code
     except subprocess.TimeoutExpired:
         proc.send_signal(signal.SIGINT)
         proc.wait(30)

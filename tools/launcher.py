@@ -703,6 +703,9 @@ class Launcher:
         shutil.rmtree(self.runtime_dir, ignore_errors=True)
         for c in self.children.values():
             if c.proc is not None and c.proc.returncode not in (None, 0) and not c.is_broker and c.proc.returncode != -signal.SIGINT:
+                code = c.proc.returncode
+                self.say(f"node '{c.name}' ended with " + (f"exit code {code}" if code >= 0 else f"signal {signal.Signals(-code).name}")
+                         + " during shutdown")
                 self._exit_code = self._exit_code or 1
         self.say("graph stopped")
 
