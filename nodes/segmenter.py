@@ -40,7 +40,8 @@ class Segmenter(Node):
     }
     PUBLISHES = {"labels": "markers/labels"}
     # a labelling in progress (offline stages, niced: ~5-30 s on a loaded 2-core machine) finishes
-    # before the node stops; with the default 10 s the stop alarm killed it mid-way (exit by SIGALRM)
+    # before the node stops; with the default 10 s the stop alarm can end it mid-way (exit by
+    # SIGALRM), which the launcher reports as a failed graph
     STOP_TIMEOUT_S = 60
 
     def setup(self) -> None:
