@@ -202,7 +202,7 @@ def run_bench(args) -> dict:
         if unknown:
             raise UserError(f"unknown method(s) {', '.join(unknown)}; registered: {', '.join(sorted(METHODS)) or 'none'}")
     elif args.suite == "smoke":
-        # the smoke suite is a sanity check (< 2 min): the reference, the baselines and our solvers;
+        # the smoke suite is a sanity check (~3 min on the 2-core CPU): the reference, the baselines and our solvers;
         # ablations and slow variants run in `full` or with --methods
         methods = [m for m in SMOKE_METHODS if m in METHODS]
     else:
@@ -309,7 +309,7 @@ def register_bench(subparsers) -> None:
         description=(
             "Generate sessions deterministically from seeds (cached), run each method on the same inputs, "
             "evaluate (m2s, MPJPE, MPJVE, V2V; partial-body: the part's joints and whether the part was found) "
-            "and print paper-style tables.  Suites: smoke (2 short sessions, < 2 min) and full (20/30/40/50 "
+            "and print paper-style tables.  Suites: smoke (2 short sessions, ~3 min on 2 cores) and full (20/30/40/50 "
             "markers x seeds x motions; left leg / right arm / left shoulder; occlusion 0/0.2/1 %)."),
     )
     p.add_argument("--suite", choices=("smoke", "full"), default="smoke")
