@@ -561,6 +561,11 @@ class WindowedSolver:
         solver is up before the take begins."""
         return self._worker is None or self._worker.ready(timeout)
 
+    @property
+    def worker_pid(self) -> int | None:
+        """Process id of the worker process once it is ready (None without one)."""
+        return None if self._worker is None else self._worker.pid
+
     # ------------------------------------------------------------------ public API
     def reset(self) -> None:
         """Forget everything but the priors (a new take / a different marker set)."""

@@ -145,6 +145,7 @@ def test_bootstrap_falls_back_to_this_process_when_the_worker_died(streamed):
     before = set(multiprocessing.active_children())
     s._worker = StagedSolveWorker(streamed["model"], streamed["chamfer"])
     assert s.wait_worker(120)
+    assert s.worker_pid in {c.pid for c in set(multiprocessing.active_children()) - before}
     for child in set(multiprocessing.active_children()) - before:
         os.kill(child.pid, signal.SIGKILL)  # the worker dies (out of memory, killed by hand...)
     res = s._solve_bootstrap_window(md.positions[sel], md.visible[sel], md.rate_hz / 2, prior, shape)

@@ -169,10 +169,10 @@ def long_take(sdir: Path, minutes: float, rate_hz: float, bar) -> dict:
             next_prior = st + int(round(1e9 / 30.0))
         solver.add_markers(st, pos[j], vis[j])
         if k + 1 == int(round(60 * rate)) or k + 1 == total:
-            worker = solver._worker
+            pid = solver.worker_pid
             marks[f"{(k + 1) / rate / 60:.0f}min"] = {
                 "peak_rss_mib": round(_rss_mib(), 1), "solver_memory": _proc_memory_mib(),
-                "worker_memory": _proc_memory_mib(worker.pid) if worker is not None and worker.pid else {},
+                "worker_memory": _proc_memory_mib(pid) if pid else {},
                 "buffers": solver.buffer_sizes(), "wall_s": round(time.perf_counter() - t0, 1)}
         if k % 200 == 0:
             bar.set_postfix_str(f"long take {k / rate / 60:.1f}/{minutes:g} min")
