@@ -14,8 +14,8 @@ Three layers, each reusing the offline stages (no second copy of any stage):
   blend skinning has no pose blend shapes in the open models, so it is exact there and a
   Gauss-Newton approximation for SMPL files with pose correctives).
 * **Refined** (fixed lag): the same energy over a window of the not-yet-final frames plus a few
-  already-final context frames, with the offline IK's temporal-smoothness term (joint
-  accelerations), solved by banded Gauss-Newton (the smoothness couples only neighbouring frames,
+  already-final context frames, with a temporal-smoothness term (accelerations of the pelvis
+  and of every bone vector; ``smoothness_target`` explains), solved by banded Gauss-Newton (the smoothness couples only neighbouring frames,
   so the normal equations are block-banded), warm-started from the previous pass.  Frames that
   leave the lag are published as ``refined``.
 
@@ -220,11 +220,20 @@ class WindowedSolverConfig:
     context_frames: int = 2
     # Gauss-Newton iterations per smoothing pass (warm-started from the previous pass).
     refine_iterations: int = 1
-    # Joint-acceleration weight of the smoothing pass (the offline IK's smoothness term,
-    # at ik.smoothness_reference_hz; beyond the paper).  Tuned on generated walks at 30/60 Hz:
-    # 1.0 over-smooths real accelerations (MPJVE worse than the estimate's), 0.005-0.02 cuts the
-    # estimate's MPJVE by ~1/3 at +0.1-0.5 mm MPJPE.
-    smoothness_weight: float = 0.01
+    # Acceleration weight of the smoothing pass (the offline IK's smoothness term, at
+    # ik.smoothness_reference_hz; beyond the paper).  Session 17 (with smoothness_target "bones";
+    # bench walk / jump / arms at 30 Hz, 40 markers, upgrades off, refined MPJPE mm / MPJVE mm/s,
+    # means): 0.01 10.06 / 35.6, 0.02 10.09 / 33.9, 0.04 10.15 / 32.8 (the jump's wrists worse).
+    smoothness_weight: float = 0.02
+    # What the acceleration term smooths: "bones" = the pelvis position and each bone's vector
+    # (joint minus parent joint), or "joints" = every joint's world position (the offline IK's
+    # term).  Bones, because with world joints a well-observed body's real acceleration (a jump's
+    # landing) is smoothed away on its poorly observed limbs: the solve swings an arm against the
+    # trunk to keep the wrist's world path smooth (bench jump: right wrist 111 mm off at the
+    # landing, the estimate 23 mm).  Session 17 (as above, weight 0.01): refined MPJVE walk / jump
+    # / arms 37.5 / 51.6 / 31.8 -> 34.0 / 41.1 / 31.5 mm/s, MPJPE 10.22 -> 10.06 mm.  Bones in each
+    # parent's frame (no rotation of the trunk reaching the limbs) smoothed less: 38.2 (0.01).
+    smoothness_target: str = "bones"
     # Conjugate-gradient iterations per smoothing step (block-preconditioned).  Session 16: 25 do
     # not reach CG's tolerance (10 leave steps up to 0.15 rad from 25's), but an exact solve of the
     # same normal equations (dense) gave the same output (120 Hz walk: refined 8.77 vs 8.78 mm,
@@ -298,6 +307,8 @@ class WindowedSolverConfig:
             raise ValueError("bootstrap_s > 0, lag_frames >= 0, hop_frames >= 1, context_frames >= 0 are required")
         if self.estimate_iterations < 1 or self.refine_iterations < 0:
             raise ValueError("estimate_iterations >= 1 and refine_iterations >= 0 are required")
+        if self.smoothness_target not in ("bones", "joints"):
+            raise ValueError(f"smoothness_target must be bones or joints, got {self.smoothness_target!r}")
         if self.ik.offset_model not in ("smooth_normal", "face_normal", "distance"):
             raise ValueError(f"ik.offset_model must be smooth_normal, face_normal or distance, got {self.ik.offset_model!r}")
 
@@ -428,6 +439,16 @@ def nearest_equivalent(aa: np.ndarray, ref: np.ndarray) -> np.ndarray:
     return np.where(use & (n > 1e-6), alt, aa)
 
 
+def bone_vector_operator(parents: np.ndarray) -> np.ndarray:
+    """(3J, 3J) matrix taking stacked joint positions (J*3,) to the root's position and each
+    bone's vector (joint minus parent joint), in the same stacking."""
+    A = np.eye(len(parents))
+    for j, p in enumerate(parents):
+        if p >= 0:
+            A[j, p] = -1.0
+    return np.kron(A, np.eye(3))
+
+
 def right_jacobian_so3(theta: np.ndarray) -> np.ndarray:
     """Right Jacobian of SO(3) at axis-angle theta (...,3) -> (...,3,3):
     R(theta + d) ~= R(theta) exp(J_r(theta) d)."""
@@ -542,6 +563,7 @@ class WindowedSolver:
                 p = parents[p]
         self._desc = D
         self._parents = np.asarray(parents)
+        self._bone_operator = bone_vector_operator(self._parents)
         self._levels = [(ids.numpy(), par.numpy()) for ids, par in lbs.kinematic_levels(model.parents)]
         self._worker = None
         if config.worker_process and (config.bootstrap_alternatives or config.upgrade_in_background):
@@ -1223,6 +1245,9 @@ class WindowedSolver:
             Cm = (L.T @ L)[n_fixed:, n_fixed:]  # banded: frames up to 2 apart interact
             P = lin["joints"].reshape(T, 72)
             G = lin["GJ"][n_fixed:]
+            if c.smoothness_target == "bones":
+                P = P @ self._bone_operator.T
+                G = self._bone_operator @ G
             Gt = np.ascontiguousarray(G.transpose(0, 2, 1))
             back = (L.T @ (L @ P))[n_fixed:]  # gradient of 0.5 |L P|^2 w.r.t. P
             g += ws * (Gt @ back[..., None])[..., 0]

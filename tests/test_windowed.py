@@ -529,3 +529,35 @@ def test_worker_process_ends_when_its_parent_is_killed(tmp_path):
     finally:
         parent.kill()
         parent.wait(10)
+
+
+def test_smoothing_leaves_the_limbs_alone_when_the_whole_body_accelerates(streamed):
+    """A landing: every marker of a 22-frame window gets the same sharp vertical dip (the trunk
+    and limbs move together, no limb moves relative to the body).  The smoothing pass on bone
+    vectors leaves the limbs' rotations where the markers put them; smoothing world joint
+    positions (the offline IK's term) turns the limbs against the dip to keep their joints' paths
+    smooth."""
+    from uuomocap.solver_core.windowed_solver import N_POSE
+
+    frames = list(streamed["solver"]._history)[-22:]
+    t = np.arange(len(frames))
+    dip = -0.08 * np.exp(-0.5 * ((t - 11) / 1.5) ** 2)  # metres: an 8 cm dip over ~0.1 s
+    lift = np.stack([np.zeros_like(dip), np.zeros_like(dip), dip], 1)  # the session's up axis is +z
+    markers = np.stack([f.markers for f in frames]) + lift[:, None]
+    vis = np.stack([f.visible for f in frames])
+    prior = np.stack([f.prior for f in frames])
+    theta0 = np.stack([f.theta for f in frames])
+    trans0 = np.stack([f.trans for f in frames]) + lift
+    moved = {}
+    for target in ("bones", "joints"):
+        s = _clone(streamed)
+        s.config = replace(s.config, smoothness_target=target)
+        theta, trans = theta0.copy(), trans0.copy()
+        for _ in range(4):  # to convergence (the streamed pass takes one step per hop)
+            step = s._window_step(theta, trans, markers, vis, prior, 2)
+            theta[2:] += step[:, :N_POSE]
+            trans[2:] += step[:, N_POSE:]
+        # how far the limb rotations (joints below the pelvis' children) moved, radians
+        moved[target] = float(np.abs(theta[:, 9:] - theta0[:, 9:]).max())
+    print(f"\nlimb rotation change under a whole-body dip: bones {moved['bones']:.4f} rad, joints {moved['joints']:.4f} rad")
+    assert moved["bones"] < 0.5 * moved["joints"], moved
