@@ -32,7 +32,7 @@ class SolverNodeConfig:
     hop_frames: int = 10  # frames finalised per smoothing pass (10: ~1/3 less smoothing work per frame than 5)
     defer_refine_hops: int = 2  # while frames queue up, smoothing waits for up to this many hops, then runs one pass per frame
     estimate_iterations: int = 2
-    smoothness_weight: float = 0.01
+    smoothness_weight: float | None = None  # None: the windowed solver's own default (WindowedSolverConfig)
     publish_estimates: bool = True
     threads: int = 1  # torch intra-op threads (1 = deterministic and leaves a core to the graph)
     # lock upgrades (the staged solver on frames spread over the take, ~30-60 s each time the take
@@ -77,8 +77,9 @@ class Solver(Node):
         c = self.config
         self.model, self.chamfer_model = load_models(c.body_model)
         self.solver_config = replace(WindowedSolverConfig(), bootstrap_s=c.bootstrap_s, lag_frames=c.lag_frames, hop_frames=c.hop_frames,
-                                     estimate_iterations=c.estimate_iterations, smoothness_weight=c.smoothness_weight,
-                                     upgrade_in_background=c.upgrade_in_background)
+                                     estimate_iterations=c.estimate_iterations, upgrade_in_background=c.upgrade_in_background)
+        if c.smoothness_weight is not None:
+            self.solver_config = replace(self.solver_config, smoothness_weight=c.smoothness_weight)
         if c.bootstrap_starts == 1:
             self.solver_config = replace(self.solver_config, bootstrap_alternatives=())
         self.solver = None

@@ -561,3 +561,21 @@ def test_smoothing_leaves_the_limbs_alone_when_the_whole_body_accelerates(stream
         moved[target] = float(np.abs(theta[:, 9:] - theta0[:, 9:]).max())
     print(f"\nlimb rotation change under a whole-body dip: bones {moved['bones']:.4f} rad, joints {moved['joints']:.4f} rad")
     assert moved["bones"] < 0.5 * moved["joints"], moved
+
+
+def test_solver_node_uses_the_windowed_solvers_defaults_unless_configured():
+    """The node's launch-file parameters override the solver's config only when given (its own
+    copy of the smoothing weight once kept an old default after the solver's was re-tuned)."""
+    from uuomocap.nodes.base import Runtime
+    from uuomocap.nodes.solver import Solver
+    from uuomocap.solver_core.windowed_solver import WindowedSolverConfig
+
+    for params, expected in (({}, WindowedSolverConfig().smoothness_weight), ({"smoothness_weight": 0.005}, 0.005)):
+        node = Solver("solver", Solver.parse_config({**params, "bootstrap_starts": 1}, "solver"), Runtime(endpoints=None))
+        node.setup()  # one bootstrap start: no worker process
+        try:
+            assert node.worker is None
+            assert node.solver_config.smoothness_weight == expected
+            assert node.solver_config.smoothness_target == WindowedSolverConfig().smoothness_target
+        finally:
+            node.teardown()
