@@ -46,7 +46,7 @@ class Tracker(Node):
     PUBLISHES = {"tracked": "markers/tracked"}
     # On a stop request, track what is already queued (the source stops first, so the input goes
     # quiet): a tracker that lagged ~1 s behind a 120 Hz stream on a loaded machine otherwise
-    # dropped its backlog, and the recording held 123 of 240 tracked frames beside 240 raw ones.
+    # dropped its backlog, and the recording held 124 tracked messages beside 241 raw ones (240 + end).
     DRAIN_ON_STOP_S = 0.5
     DRAIN_MAX_S = 8.0  # below STOP_TIMEOUT_S (10 s), after which SIGALRM ends the process
 

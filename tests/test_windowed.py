@@ -557,7 +557,7 @@ def test_smoothing_leaves_the_limbs_alone_when_the_whole_body_accelerates(stream
             step = s._window_step(theta, trans, markers, vis, prior, 2)
             theta[2:] += step[:, :N_POSE]
             trans[2:] += step[:, N_POSE:]
-        # how far the limb rotations (joints below the pelvis' children) moved, radians
+        # how far the rotations of every joint but the root and the hips (spine1 on) moved, radians
         moved[target] = float(np.abs(theta[:, 9:] - theta0[:, 9:]).max())
     print(f"\nlimb rotation change under a whole-body dip: bones {moved['bones']:.4f} rad, joints {moved['joints']:.4f} rad")
     assert moved["bones"] < 0.5 * moved["joints"], moved
