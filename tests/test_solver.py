@@ -280,6 +280,46 @@ def test_solve_cli_writes_out_npz(full_session, tmp_path):
         assert main(["solve", *extra, "--method", "uuo-window", "--out", str(out), "--quiet"]) == 2
 
 
+def test_solve_cli_runs_on_the_threads_it_is_given_and_restores_them(full_session, tmp_path, monkeypatch, capsys):
+    """An offline solve has the machine to itself (every core unless the user set
+    OMP_NUM_THREADS or --threads); in-process callers get their own thread count back."""
+    import json
+    import os
+
+    import torch
+    import uuomocap
+    import uuomocap.methods
+    from uuomocap.cli import main
+    from uuomocap.commands import UserError, solo_thread_count
+
+    seen = []
+    real = uuomocap.methods.get_method
+
+    def probing(name):
+        method = real(name)
+
+        def run(*args, **kwargs):
+            seen.append(torch.get_num_threads())
+            return method(*args, **kwargs)
+
+        return run
+
+    monkeypatch.setattr(uuomocap.methods, "get_method", probing)
+    before = torch.get_num_threads()
+    out = tmp_path / "rr.npz"
+    assert main(["solve", str(full_session), "--method", "video-rr", "--out", str(out), "--threads", "2", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["threads"] == 2
+    assert seen == [2] and torch.get_num_threads() == before
+    # the suite sets OMP_NUM_THREADS=1 (conftest): the user's choice wins over "every core"
+    monkeypatch.setattr(uuomocap, "THREADS_FROM_ENVIRONMENT", True)
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert solo_thread_count(None) == 1
+    monkeypatch.setattr(uuomocap, "THREADS_FROM_ENVIRONMENT", False)
+    assert solo_thread_count(None) == len(os.sched_getaffinity(0))
+    with pytest.raises(UserError, match="--threads"):
+        solo_thread_count(0)
+
+
 def test_cluster_consistency_moves_a_marker_that_left_its_rigid_group():
     """Markers of one rigid cluster on the left arm, one of them labelled on the torso: only that
     one is flagged, and it may move to the arm's joints (and their tree neighbours) only."""
@@ -406,3 +446,20 @@ def test_a_decisive_registration_screens_one_hypothesis():
     assert yaws(decisive, None, None) == [0.1, 2.0, 3.0]
     assert yaws(ambiguous, 1, 2.0) == [0.1]
     assert _screened_hypotheses([], 2, 2.0) == []
+
+
+def test_the_offline_solver_trusts_a_decisive_registration_on_full_bodies_only():
+    """A partial body's few markers register its part's yaw less surely (README: with one
+    hypothesis the left leg was found in 2 of 3 sessions): its hypotheses are all screened, unless
+    a config asks for the test everywhere (the windowed bootstrap); the published method screens all."""
+    from types import SimpleNamespace
+
+    from uuomocap.solver_core.staged_solver import SolverConfig, _decisive_ratio
+    from uuomocap.solver_methods import solver_config_for
+
+    full, part = SimpleNamespace(full_body=True), SimpleNamespace(full_body=False)
+    cfg = SolverConfig()
+    assert _decisive_ratio(cfg, full) == 2.0 and _decisive_ratio(cfg, part) is None
+    everywhere = SolverConfig(decisive_registration_ratio=3.0)
+    assert _decisive_ratio(everywhere, full) == 3.0 and _decisive_ratio(everywhere, part) == 3.0
+    assert _decisive_ratio(solver_config_for("uuo-paper"), full) is None

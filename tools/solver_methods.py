@@ -156,6 +156,7 @@ def solver_config_for(method: str, **overrides):
             refinement_rounds=1,
             placement_selection=replace(cfg.placement_selection, enabled=False),
             fit_offset_model="face_normal",
+            decisive_full_body_ratio=None,  # the paper takes every yaw hypothesis through Stages 2-4
         )
     elif method == "markers-only":
         # the neutral prior has no rotation to offer a second opinion on the marker points

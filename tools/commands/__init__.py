@@ -6,9 +6,11 @@ Shared helpers for verbs live here so every verb behaves the same:
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import sys
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -42,3 +44,40 @@ def emit(args: Any, data: dict, text: str | None = None) -> None:
 
 def add_json_flag(parser) -> None:
     parser.add_argument("--json", action="store_true", help="print machine-readable JSON instead of text")
+
+
+def add_threads_flag(parser) -> None:
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch threads for this command (default: OMP_NUM_THREADS when set, else every usable core; "
+                             "uuo-window and a graph's nodes use one each, as they share the cores live)")
+
+
+def solo_thread_count(requested: int | None) -> int:
+    """Threads for a command that has the machine to itself: ``requested`` (--threads), else the
+    user's OMP_NUM_THREADS, else every core this process may run on."""
+    from uuomocap import THREADS_FROM_ENVIRONMENT
+
+    if requested is not None:
+        if requested < 1:
+            raise UserError(f"--threads must be at least 1, got {requested}")
+        return requested
+    if THREADS_FROM_ENVIRONMENT:
+        try:
+            return max(1, int(os.environ["OMP_NUM_THREADS"]))
+        except ValueError:
+            raise UserError(f"OMP_NUM_THREADS must be a whole number, got {os.environ['OMP_NUM_THREADS']!r}") from None
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+@contextlib.contextmanager
+def torch_threads(count: int) -> Iterator[int]:
+    """Run the block with ``count`` torch intra-op threads and restore the previous count after
+    (commands also run in-process, from tests and scripts)."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(count)
+    try:
+        yield count
+    finally:
+        torch.set_num_threads(before)
