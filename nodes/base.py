@@ -198,6 +198,7 @@ class Node:
         self._reject_logged: dict[str, int] = defaultdict(int)
         self._in_handler = False
         self._ack_state: dict[tuple[str, str, int], Ack] = {}
+        self._sent_while_stopping = False
 
     # ---- hooks for subclasses -----------------------------------------------------------
     def setup(self) -> None:
@@ -218,6 +219,11 @@ class Node:
 
     def on_timer(self) -> None:
         """Called every ``self.timer_s`` seconds when set."""
+
+    def on_stop(self) -> None:
+        """Stopped by a signal (after the drain, before teardown): publish what the node still
+        holds that downstream should record (the launcher stops nodes in data-flow order, so the
+        sinks are still running)."""
 
     def teardown(self) -> None:
         """Release resources; always called, also after a stop signal."""
@@ -242,6 +248,7 @@ class Node:
         topic = self.outputs[port]
         if topic not in self._ready_done:
             self._wait_ready(topic)
+        self._sent_while_stopping = self._sent_while_stopping or self._stop
         return self._pub.send(topic, msg, stamp_ns)
 
     def wait_ready(self, *ports: str) -> None:
@@ -356,6 +363,8 @@ class Node:
                     self._serve(self._next_timer_ms())
             if self.DRAIN_ON_STOP_S > 0:
                 self._drain(self.DRAIN_ON_STOP_S)
+            if self._stop:
+                self.on_stop()
         except Exception:
             self.log.exception("node failed")
             self._exit_code = 1
@@ -410,8 +419,9 @@ class Node:
         if self._pub is not None:
             # A node that finished by itself (a replay at its end) may still have messages queued in
             # the socket: closing with linger 0 dropped them (a lockstep replay then waited forever
-            # for the credit of a prior that never left).  Stopped by a signal: no wait.
-            self._pub.close(0 if self._stop else self.FINISH_LINGER_MS)
+            # for the credit of a prior that never left).  Stopped by a signal: no wait, unless it
+            # published while stopping (a drain, on_stop) - those messages are the point of it.
+            self._pub.close(0 if self._stop and not self._sent_while_stopping else self.FINISH_LINGER_MS)
         self._pub = self._sub = None
 
     def _port_for(self, topic: str) -> str | None:

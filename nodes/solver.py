@@ -65,6 +65,10 @@ class Solver(Node):
     }
     PUBLISHES = {"solved": "body/solved"}
     STOP_TIMEOUT_S = 60  # a bootstrap in progress finishes before the node stops
+    # stopped mid-take (Ctrl-C on a live graph): solve the frames still queued, then flush the lag
+    # (on_stop) - before this the recording lost the last lag frames' refined results and any backlog
+    DRAIN_ON_STOP_S = 0.5
+    DRAIN_MAX_S = 30.0
 
     def setup(self) -> None:
         import torch
@@ -116,6 +120,8 @@ class Solver(Node):
         if self.solver is None:
             self._make_solver(msg)
         s = self.solver
+        if self.stopping:  # draining after a stop: the take is over, no lock upgrade can pay off
+            s.end_upgrades()
         was_locked = s.locked
         # Behind the stream (frames queued, e.g. after the bootstrap): one Gauss-Newton iteration per
         # estimate, and the smoothing passes are deferred (bounded) and spread out.  Lockstep never
@@ -142,6 +148,10 @@ class Solver(Node):
             return
         self._publish(self.solver.flush())
         self.end_stream("solved")
+
+    def on_stop(self) -> None:
+        if self.solver is not None:
+            self._publish(self.solver.flush())
 
     def teardown(self) -> None:
         if self.solver is not None:

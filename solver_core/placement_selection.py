@@ -37,6 +37,8 @@ class PlacementSelectionConfig:
     enabled: bool = True
     # Frames on which both placements are fitted for the choice (evenly spread over the take).
     frames: int = 150
+    # L-BFGS iterations of those two fits (None = Stage 5's own budget).
+    max_iterations: int | None = None
 
 
 def prior_rotation_placement(

@@ -132,5 +132,8 @@ class StagedSolveWorker:
         self._cancelled_upto.value = max(self._cancelled_upto.value, int(job_id))
 
     def close(self) -> None:
+        """Cancel every job and wait for the worker to end: a running solve stops at its next
+        optimiser step.  (Not waiting left the pool's wake-up pipe closed under its manager
+        thread: "OSError: Bad file descriptor" at every solver node's exit.)"""
         self.cancel_upto(self._next_id)
-        self._pool.shutdown(wait=False, cancel_futures=True)
+        self._pool.shutdown(wait=True, cancel_futures=True)

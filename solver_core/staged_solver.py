@@ -444,17 +444,20 @@ def solve(
     refine_ik = replace(config.ik, robust_scale_m=config.refinement_robust_scale_m)
 
     def refine(params: BodyParams, attachment: MarkerAttachment, markers_t: torch.Tensor, visible_t: torch.Tensor,
-               frames: torch.Tensor | None = None):
+               frames: torch.Tensor | None = None, max_iterations: int | None = None):
         """Stage 5's IK (pose prior = ``params``), with latent markers folded back into points;
-        ``frames``: which of the session's frames ``markers_t`` holds (None = all)."""
+        ``frames``: which of the session's frames ``markers_t`` holds (None = all);
+        ``max_iterations``: its L-BFGS budget (None = ``config.ik``'s)."""
         bias = prior_body if frames is None else prior_body[frames]
+        ik_cfg = refine_ik if max_iterations is None else replace(
+            refine_ik, lbfgs=replace(refine_ik.lbfgs, max_iterations=max_iterations))
         if config.refinement_marker_slack_m is None:
             out, rep = solve_inverse_kinematics(
                 model, markers_t, visible_t, attachment, params.root_orient, params.body_pose, beta_prior, params, up,
-                refine_ik, FreeParameters(yaw=False), rate_hz=rate_hz, on_step=stepper("stage5"), bias_prior=bias,
+                ik_cfg, FreeParameters(yaw=False), rate_hz=rate_hz, on_step=stepper("stage5"), bias_prior=bias,
             )
         else:
-            ik_cfg = replace(refine_ik, marker_slack_m=config.refinement_marker_slack_m)
+            ik_cfg = replace(ik_cfg, marker_slack_m=config.refinement_marker_slack_m)
             out, rep, disp = solve_inverse_kinematics_with_slack(
                 model, markers_t, visible_t, attachment, params.root_orient, params.body_pose, beta_prior, params, up,
                 ik_cfg, FreeParameters(yaw=False), rate_hz=rate_hz, on_step=stepper("stage5"), bias_prior=bias,
@@ -484,7 +487,8 @@ def solve(
                 current_att, took = select_marker_placements(
                     model, mk[sel], vis[sel], current.frames(sel), current_att, marker_joint_ids(model, current_att),
                     prior_body[sel], up, part_output_ids, config.correspondence, vertex_faces,
-                    lambda p, a, m, v: refine(p, a, m, v, frames=sel), refine_ik.marker_offset_m, config.fit_offset_model,
+                    lambda p, a, m, v: refine(p, a, m, v, frames=sel, max_iterations=config.placement_selection.max_iterations),
+                    refine_ik.marker_offset_m, config.fit_offset_model,
                 )
                 diag["prior_placement_markers"] = took
             current, current_att = refine(current, current_att, mk, vis)

@@ -620,6 +620,7 @@ class WindowedSolver:
         self._lock_generation = getattr(self, "_lock_generation", 0) + 1
         self.cancel_upgrade()  # a running upgrade belongs to the old lock
         self._upgrade_job = None  # (future, inputs) of a background upgrade
+        self._upgrades_ended = False  # end_upgrades(): the take is ending
         self._executor = getattr(self, "_executor", None)
 
     def add_prior(self, stamp_ns: int, global_orient, body_pose, betas, valid: bool = True, camera_frame: bool = True,
@@ -720,6 +721,13 @@ class WindowedSolver:
             job[1]["cancel"].set()
             if "worker_job" in job[1]:
                 self._worker.cancel_upto(job[1]["worker_job"])
+
+    def end_upgrades(self) -> None:
+        """The take is ending (a live stop): cancel a running lock upgrade and start no more - a
+        new lock could only serve frames that are about to be flushed, and an upgrade solved in
+        this process takes 30-60 s."""
+        self.cancel_upgrade()
+        self._upgrades_ended = True
 
     def close(self) -> None:
         """Cancel a running upgrade and release the worker thread (the solver stays usable)."""
@@ -1349,7 +1357,7 @@ class WindowedSolver:
         # lock upgrade once the take has grown enough since the lock was estimated
         self._poll_upgrade()
         if (c.upgrade_frames > 0 and self._boot is None and self._reservoir_seen >= self._MIN_UPGRADE_FRAMES
-                and self._reservoir_seen >= c.upgrade_growth * self._locked_span):
+                and self._reservoir_seen >= c.upgrade_growth * self._locked_span and not self._upgrades_ended):
             self._upgrade_lock()
         # periodic re-check of every correspondence on the recent window
         self._since_recheck += 1

@@ -76,3 +76,47 @@ def test_lockstep_replay_through_the_solver_is_reproducible(tmp_path):
     assert (x["frame_kind"] == "refined").all() and x["poses"].shape == (frames, 72)
     metrics = evaluate_paths(npz[0], session / "gt.npz", session / "markers.c3d")
     assert metrics["mpjpe"] < 60.0, metrics
+
+
+@pytest.mark.slow
+def test_a_live_stop_keeps_every_estimated_frame_refined(tmp_path):
+    """Ctrl-C on a running take (SIGINT to the launcher, which stops the graph in data-flow order):
+    the solver handles what is still queued and flushes the frames inside its fixed lag, so the
+    recording holds a refined frame for every frame it estimated (before: the last lag frames and
+    any backlog were dropped)."""
+    import time
+
+    if "solver" not in set(discover_plugins()):
+        pytest.skip("solver plugin is not installed (pip install -e .)")
+    from uuomocap.synth import SampleConfig, make_session
+
+    session = tmp_path / "s"
+    make_session(session, SampleConfig(motion="walk", rate_hz=30.0, duration_s=60.0, n_markers=40, seed=0, video=False))
+    out, logs = tmp_path / "live.mcap", tmp_path / "logs"
+    logs.mkdir()
+    with open(logs / "launcher.log", "wb") as log:
+        proc = subprocess.Popen([sys.executable, "-m", "uuomocap.launcher", "replay_session", f"session:={session}", f"out:={out}",
+                                 "bootstrap_s:=1.5", "--log-dir", str(logs)], stdout=log, stderr=log, stdin=subprocess.DEVNULL,
+                                start_new_session=True)
+    try:
+        deadline = time.monotonic() + DEADLINE
+        solver_log = logs / "solver.log"
+        while not (solver_log.exists() and "bootstrap done" in solver_log.read_text(errors="replace")):
+            assert proc.poll() is None, f"graph ended before the solver bootstrapped; logs in {logs}"
+            assert time.monotonic() < deadline, f"no bootstrap in {DEADLINE}s; logs in {logs}"
+            time.sleep(0.2)
+        time.sleep(3.0)  # the take goes on (60 s of markers: still streaming, whatever the bootstrap took)
+        proc.send_signal(signal.SIGINT)
+        code = proc.wait(120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert code == 0, (logs / "launcher.log").read_text(errors="replace")[-2000:]
+    kinds: dict[str, set[int]] = {"estimate": set(), "refined": set()}
+    for rec in iter_recording(out, topics=["body/solved"]):
+        m = rec.decode().message
+        kinds[m.kind].add(int(m.frame_index))
+    assert 45 <= len(kinds["estimate"]) < 1800, len(kinds["estimate"])  # stopped mid-take, after the bootstrap
+    assert kinds["refined"] == kinds["estimate"], sorted(kinds["estimate"] - kinds["refined"])[:20]
+    exported = np.load(out.with_suffix(".npz"))
+    assert len(exported["frame_kind"]) == len(kinds["estimate"]) and (exported["frame_kind"] == "refined").all()

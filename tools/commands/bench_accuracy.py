@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from uuomocap.commands import UserError
+from uuomocap.commands import UserError, add_threads_flag, solo_thread_count, torch_threads
 
 FULL_MOTIONS = ("walk", "jump", "arms")
 PARTS = ("left_leg", "right_arm", "left_shoulder")
@@ -234,6 +234,8 @@ def run_bench(args) -> dict:
 
     results: dict[tuple[str, str], dict] = {}
     gt_m2s: dict[str, float] = {}
+    # the methods run one after another: each gets every core (uuo-window keeps one, as live)
+    threads = solo_thread_count(getattr(args, "threads", None))
     for key, sdir in session_dirs.items():
         for method in methods:
             bar.set_postfix_str(f"{method} {key[:24]}")
@@ -244,7 +246,8 @@ def run_bench(args) -> dict:
             rec: dict = {"method": method, "session": key}
             ts = time.perf_counter()
             try:
-                info = METHODS[method](sdir, out, unique[key].body_model)
+                with torch_threads(threads):
+                    info = METHODS[method](sdir, out, unique[key].body_model)
                 rec["seconds"] = time.perf_counter() - ts
                 rec["info"] = info if isinstance(info, dict) else {}
                 metrics = evaluate_paths(out, sdir / "gt.npz", sdir / "markers.c3d", with_gt_m2s=key not in gt_m2s)
@@ -275,6 +278,7 @@ def run_bench(args) -> dict:
         "methods": methods,
         "cache": str(cache),
         "sessions": {k: {"dir": str(d), "config": asdict(unique[k]), "m2s_gt": gt_m2s.get(k)} for k, d in session_dirs.items()},
+        "threads": threads,
         "generate_seconds": round(gen_seconds, 2),
         "total_seconds": round(time.perf_counter() - t0, 2),
         "scenarios": [{"table": t, "scenario": s, "sessions": len(c)} for t, s, c in scenarios],
@@ -296,7 +300,8 @@ def _handler(args) -> int:
     ref = [v["m2s_gt"] for v in res["sessions"].values() if v.get("m2s_gt") is not None]
     if ref:
         print(f"ground truth m2s (markers 9.5 mm off the skin): {np.mean(ref):.2f} mm; "
-              f"{len(res['sessions'])} sessions (generation {res['generate_seconds']} s), total {res['total_seconds']} s"
+              f"{len(res['sessions'])} sessions (generation {res['generate_seconds']} s), total {res['total_seconds']} s "
+              f"on {res['threads']} thread{'s' if res['threads'] != 1 else ''}"
               + (f"; JSON: {args.json}" if args.json else ""))
     failed = sum(1 for r in res["runs"] if "error" in r)
     return 1 if failed and args.strict else 0
@@ -328,4 +333,5 @@ def register_bench(subparsers) -> None:
     p.add_argument("--json", metavar="FILE", help="write all results as JSON")
     p.add_argument("--strict", action="store_true", help="exit 1 when any method fails on any session")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_threads_flag(p)
     p.set_defaults(func=_handler)
