@@ -18,13 +18,19 @@ from uuomocap.protocol.recording import iter_recording
 DEADLINE = 240.0
 
 
-def run_graph(tmp_path: Path, session: Path, out: Path, tag: str) -> int:
+def start_graph(tmp_path: Path, launch: str, session: Path, out: Path, tag: str) -> tuple[subprocess.Popen, Path]:
+    """The launcher on ``launch`` (bootstrap 1.5 s) in its own session -> (process, log dir)."""
     logs = tmp_path / f"logs-{tag}"
     logs.mkdir()
     with open(logs / "launcher.log", "wb") as log:
-        proc = subprocess.Popen([sys.executable, "-m", "uuomocap.launcher", "offline_solve", f"session:={session}", f"out:={out}",
+        proc = subprocess.Popen([sys.executable, "-m", "uuomocap.launcher", launch, f"session:={session}", f"out:={out}",
                                  "bootstrap_s:=1.5", "--log-dir", str(logs)], stdout=log, stderr=log, stdin=subprocess.DEVNULL,
                                 start_new_session=True)
+    return proc, logs
+
+
+def run_graph(tmp_path: Path, session: Path, out: Path, tag: str) -> int:
+    proc, logs = start_graph(tmp_path, "offline_solve", session, out, tag)
     try:
         code = proc.wait(DEADLINE)
         if code != 0:  # which node ended how (the launcher says) and every node's last lines
@@ -92,12 +98,8 @@ def test_a_live_stop_keeps_every_estimated_frame_refined(tmp_path):
 
     session = tmp_path / "s"
     make_session(session, SampleConfig(motion="walk", rate_hz=30.0, duration_s=60.0, n_markers=40, seed=0, video=False))
-    out, logs = tmp_path / "live.mcap", tmp_path / "logs"
-    logs.mkdir()
-    with open(logs / "launcher.log", "wb") as log:
-        proc = subprocess.Popen([sys.executable, "-m", "uuomocap.launcher", "replay_session", f"session:={session}", f"out:={out}",
-                                 "bootstrap_s:=1.5", "--log-dir", str(logs)], stdout=log, stderr=log, stdin=subprocess.DEVNULL,
-                                start_new_session=True)
+    out = tmp_path / "live.mcap"
+    proc, logs = start_graph(tmp_path, "replay_session", session, out, "live")
     try:
         deadline = time.monotonic() + DEADLINE
         solver_log = logs / "solver.log"

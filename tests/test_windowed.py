@@ -579,3 +579,17 @@ def test_solver_node_uses_the_windowed_solvers_defaults_unless_configured():
             assert node.solver_config.smoothness_target == WindowedSolverConfig().smoothness_target
         finally:
             node.teardown()
+
+
+def test_lever_jacobian_is_minus_the_lever_cross_each_axis():
+    """Block j of point k: d(p_k)/d(theta_j) = -[lever_kj]x axes_j, i.e. column q is axis_q x lever
+    (a rotation about axis_q moves the point by axis_q x lever); checked against np.cross."""
+    from uuomocap.solver_core.windowed_solver import lever_jacobian, rotation_matrices
+
+    rng = np.random.default_rng(3)
+    for B, K in ((1, 40), (5, 7)):
+        levers = rng.normal(size=(B, K, 24, 3))
+        axes = rotation_matrices(rng.normal(size=(B, 24, 3)))
+        got = lever_jacobian(levers, axes).reshape(B, K, 3, 24, 3)
+        want = np.cross(np.swapaxes(axes, -1, -2)[:, None], levers[:, :, :, None, :])  # (B,K,24,q,3): axis_q x lever
+        np.testing.assert_allclose(got, want.transpose(0, 1, 4, 2, 3), atol=1e-12)
