@@ -110,9 +110,6 @@ class SolverConfig:
     decisive_full_body_ratio: float | None = 2.0
     # Beyond the paper (speed): frames on which each hypothesis goes through Stages 2-4.
     screening_frames: int = 60
-    # Beyond the paper (speed): a lone hypothesis needs no ranking; True starts the winner's
-    # Stage 2 straight from the part matching instead of from a Stage 2 on the screening frames.
-    skip_lone_screening: bool = False
     # Beyond the paper (speed): Stage 2 and Stage 4 settings while screening the hypotheses
     # (None = the stages' own): a ranking can be cheaper than the winner's fit.
     screening_pose_fitting: PoseFittingConfig | None = None
@@ -365,13 +362,10 @@ def solve(
                 chamfer_model, mk[screen_t], vis[screen_t], root_h, prior_body[screen_t], cand_betas, up, cand.vertex_ids, yaw_t,
             )
             init = BodyParams(root_h.clone(), prior_body[screen_t].clone(), trans, cand_betas.clone(), yaw_t)
-            if len(hypotheses) == 1 and config.skip_lone_screening:
-                p2, tilt = init, torch.eye(3)
-            else:
-                p2, _, tilt = fit_pose(
-                    chamfer_model, mk[screen_t], vis[screen_t], root_h, prior_body[screen_t], beta_prior, init, up,
-                    cand_chamfer_ids, screen_pf, rate_hz=rate_hz, on_step=stepper("stage1"),
-                )
+            p2, _, tilt = fit_pose(
+                chamfer_model, mk[screen_t], vis[screen_t], root_h, prior_body[screen_t], beta_prior, init, up,
+                cand_chamfer_ids, screen_pf, rate_hz=rate_hz, on_step=stepper("stage1"),
+            )
             tilt = tilt @ torch.as_tensor(hyp_tilt, dtype=torch.float32)  # total tilt of this hypothesis
             err = math.nan
             if len(hypotheses) > 1:
