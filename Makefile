@@ -25,7 +25,7 @@ demo: $(STAMP)
 # Two workers (the CI machine has 2 cores); a file stays on one worker so its module fixtures
 # (generated sessions, solves) are built once.
 test: $(STAMP)
-	$(PY) -m pytest -n 2 --dist loadfile --durations=15
+	$(PY) -m pytest -n 2 --dist loadfile --no-loadscope-reorder --durations=15
 
 clean:
 	rm -rf $(VENV) build *.egg-info
