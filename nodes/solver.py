@@ -31,8 +31,8 @@ class SolverNodeConfig:
     lag_frames: int = 10  # fixed lag of the refined output
     hop_frames: int = 10  # frames finalised per smoothing pass (10: ~1/3 less smoothing work per frame than 5)
     defer_refine_hops: int = 2  # while frames queue up, smoothing waits for up to this many hops, then runs one pass per frame
-    estimate_iterations: int = 2
-    smoothness_weight: float | None = None  # None: the windowed solver's own default (WindowedSolverConfig)
+    estimate_iterations: int | None = None  # None (and smoothness_weight None): the windowed solver's defaults
+    smoothness_weight: float | None = None
     publish_estimates: bool = True
     threads: int = 1  # torch intra-op threads (1 = deterministic and leaves a core to the graph)
     # lock upgrades (the staged solver on frames spread over the take, ~30-60 s each time the take
@@ -43,7 +43,7 @@ class SolverNodeConfig:
     bootstrap_starts: int = 2
 
     def __post_init__(self):
-        if (self.bootstrap_s <= 0 or self.lag_frames < 0 or self.hop_frames < 1 or self.estimate_iterations < 1 or self.threads < 1
+        if (self.bootstrap_s <= 0 or self.lag_frames < 0 or self.hop_frames < 1 or (self.estimate_iterations or 1) < 1 or self.threads < 1
                 or self.defer_refine_hops < 1 or self.bootstrap_starts not in (1, 2)):
             raise ValueError("bootstrap_s > 0, lag_frames >= 0, hop_frames >= 1, estimate_iterations >= 1, threads >= 1, "
                              "defer_refine_hops >= 1, bootstrap_starts 1 or 2 are required")

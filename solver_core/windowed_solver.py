@@ -196,8 +196,17 @@ class WindowedSolverConfig:
     # directions (40-marker walk / jump / arms refined 14.9 / 18.5 / 18.7 -> 13.7 / 16.1 / 15.8 mm).
     # The facet normal, as the staged solver's IK (its config explains).
     ik: InverseKinematicsConfig = InverseKinematicsConfig(pose_weight=1.0, offset_model="face_normal")
-    # Issue 6 "Steady state": Gauss-Newton iterations of the per-frame estimate.
-    estimate_iterations: int = 2
+    # Issue 6 "Steady state": Gauss-Newton iterations of the per-frame estimate (and of the
+    # bootstrap window's frames).  None: 1 at marker rates >= ``one_iteration_from_hz``, else 2.
+    # Measured (session 19, 40 markers, own script over ``stream_solve``; refined MPJPE mm, estimate
+    # MPJPE mm / MPJVE mm/s, 2 -> 1 iteration): 120 Hz bench walk / jump (upgrades off) refined
+    # 8.58 / 16.39 -> 8.51 / 16.28, estimate MPJVE 145 / 148 -> 129 / 139, steady state 126 / 107 ->
+    # 189 / 162 frames/s.  30 Hz (the bench's three + five ``sample make`` takes, upgrades on):
+    # refined the same (9.47 -> 9.46, 14.87 -> 14.82 mean), but the estimate of fast motions worse
+    # with one (jumps 9.55 / 14.41 -> 9.77 / 14.59 mm, MPJVE 56 / 42 -> 61 / 49; run 64 -> 70): 33 ms
+    # between frames leave the warm start further from the answer.  A 30 Hz stream needs 30 frames/s.
+    estimate_iterations: int | None = None
+    one_iteration_from_hz: float = 60.0
     # Warm start the estimate by constant-velocity extrapolation of the previous two frames.
     extrapolate: bool = False
     # Beyond the paper: Cauchy IRLS scale (metres) of the per-frame solves.  A few markers on a
@@ -305,8 +314,8 @@ class WindowedSolverConfig:
     def __post_init__(self):
         if self.bootstrap_s <= 0 or self.lag_frames < 0 or self.hop_frames < 1 or self.context_frames < 0:
             raise ValueError("bootstrap_s > 0, lag_frames >= 0, hop_frames >= 1, context_frames >= 0 are required")
-        if self.estimate_iterations < 1 or self.refine_iterations < 0:
-            raise ValueError("estimate_iterations >= 1 and refine_iterations >= 0 are required")
+        if (self.estimate_iterations is not None and self.estimate_iterations < 1) or self.refine_iterations < 0:
+            raise ValueError("estimate_iterations >= 1 (or None) and refine_iterations >= 0 are required")
         if self.smoothness_target not in ("bones", "joints"):
             raise ValueError(f"smoothness_target must be bones or joints, got {self.smoothness_target!r}")
         if self.ik.offset_model not in ("smooth_normal", "face_normal", "distance"):
@@ -686,7 +695,7 @@ class WindowedSolver:
         if not self.locked:
             return self._collect_bootstrap(frame)
         t0 = time.perf_counter()
-        out = [self._estimate(frame, iterations or self.config.estimate_iterations)]
+        out = [self._estimate(frame, iterations or self.estimate_iterations)]
         self.timing["estimate_s"] += time.perf_counter() - t0
         self.timing["estimates"] += 1
         if self._boot is not None:  # a re-bootstrap is collecting while estimates go on
@@ -694,6 +703,15 @@ class WindowedSolver:
             if self._boot_ready():
                 self._bootstrap(list(self._boot), rebootstrap=True)
         return out
+
+    @property
+    def estimate_iterations(self) -> int:
+        """Gauss-Newton iterations per estimate: the configured count, else by the marker rate
+        (``WindowedSolverConfig.estimate_iterations`` explains)."""
+        c = self.config
+        if c.estimate_iterations is not None:
+            return c.estimate_iterations
+        return 1 if (self.rate_hz or 0.0) >= c.one_iteration_from_hz else 2
 
     def refine_ready(self, max_passes: int | None = None) -> list[WindowResult]:
         """Run the smoothing pass when a hop of frames has left the lag (every due pass, or at most
@@ -855,7 +873,7 @@ class WindowedSolver:
             if pend:
                 theta, trans = self._gauss_newton(np.stack([f.theta for f in pend]), np.stack([f.trans for f in pend]),
                                                   np.stack([f.markers for f in pend]), np.stack([f.visible for f in pend]),
-                                                  np.stack([f.prior for f in pend]), c.estimate_iterations)
+                                                  np.stack([f.prior for f in pend]), self.estimate_iterations)
                 for i, f in enumerate(pend):
                     f.theta, f.trans = theta[i], trans[i]
             self.stats["bootstrap_seconds"].append(round(time.perf_counter() - t0, 3))
@@ -866,7 +884,7 @@ class WindowedSolver:
         prior72 = self._tilt_priors(np.concatenate([prior.root_orient, prior.body_pose.reshape(len(frames), -1)], 1))
         for i, f in enumerate(frames):
             f.prior = prior72[i] if has_prior else theta[i].copy()
-        theta, trans = self._gauss_newton(theta, trans, markers, vis, prior72 if has_prior else theta.copy(), c.estimate_iterations)
+        theta, trans = self._gauss_newton(theta, trans, markers, vis, prior72 if has_prior else theta.copy(), self.estimate_iterations)
         out = []
         lin = self._linearize(theta, trans, markers, vis, jacobian=False)
         for i, f in enumerate(frames):

@@ -570,15 +570,29 @@ def test_solver_node_uses_the_windowed_solvers_defaults_unless_configured():
     from uuomocap.nodes.solver import Solver
     from uuomocap.solver_core.windowed_solver import WindowedSolverConfig
 
-    for params, expected in (({}, WindowedSolverConfig().smoothness_weight), ({"smoothness_weight": 0.005}, 0.005)):
+    default = WindowedSolverConfig()
+    for params, expected in (({}, (default.smoothness_weight, default.estimate_iterations)),
+                             ({"smoothness_weight": 0.005, "estimate_iterations": 3}, (0.005, 3))):
         node = Solver("solver", Solver.parse_config({**params, "bootstrap_starts": 1}, "solver"), Runtime(endpoints=None))
         node.setup()  # one bootstrap start: no worker process
         try:
             assert node.worker is None
-            assert node.solver_config.smoothness_weight == expected
+            assert (node.solver_config.smoothness_weight, node.solver_config.estimate_iterations) == expected
             assert node.solver_config.smoothness_target == WindowedSolverConfig().smoothness_target
         finally:
             node.teardown()
+
+
+def test_estimate_iterations_follow_the_marker_rate_unless_configured(streamed):
+    """One Gauss-Newton iteration per estimate from 60 Hz (a 120 Hz stream needs the throughput, and
+    the warm start is close), two below; a configured count wins at any rate."""
+    model = streamed["model"]
+    for rate, config, expected in ((120.0, WindowedSolverConfig(), 1), (60.0, WindowedSolverConfig(), 1), (30.0, WindowedSolverConfig(), 2),
+                                   (120.0, WindowedSolverConfig(estimate_iterations=2), 2), (30.0, WindowedSolverConfig(estimate_iterations=1), 1)):
+        solver = WindowedSolver(model, replace(config, worker_process=False), "+z", rate)
+        assert solver.estimate_iterations == expected, (rate, config.estimate_iterations)
+    with pytest.raises(ValueError, match="estimate_iterations"):
+        WindowedSolverConfig(estimate_iterations=0)
 
 
 def test_lever_jacobian_is_minus_the_lever_cross_each_axis():
