@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from uuomocap.protocol.messages import MarkerFrame
+from uuomocap.protocol.session import UP_AXES
 from uuomocap.protocol.natnet import (
     DEFAULT_COMMAND_PORT,
     DEFAULT_DATA_PORT,
@@ -34,7 +35,6 @@ from uuomocap.protocol.natnet import (
 
 from .base import Node
 
-UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
 
 
 @dataclass(frozen=True)

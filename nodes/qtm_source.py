@@ -19,7 +19,7 @@ from uuomocap.protocol.messages import MarkerFrame
 from uuomocap.protocol.qtm import DEFAULT_PORT, DEFAULT_PROTOCOL_VERSION, QTM_UP_AXIS, QTMClient, QTMError
 
 from .base import Node
-from .natnet_source import UP_AXES
+from uuomocap.protocol.session import UP_AXES
 
 
 @dataclass(frozen=True)

@@ -47,10 +47,10 @@ class Segmenter(Node):
     def setup(self) -> None:
         import torch
 
-        from .solver import load_models
+        from uuomocap.solver_core.body_model import load_solver_models
 
         torch.set_num_threads(self.config.threads)
-        self.model, self.chamfer_model = load_models(self.config.body_model)
+        self.model, self.chamfer_model = load_solver_models(self.config.body_model)
         self.frames: deque | None = None
         self.priors: deque = deque(maxlen=512)
         self.last_run_ns: int | None = None

@@ -49,14 +49,6 @@ class SolverNodeConfig:
                              "defer_refine_hops >= 1, bootstrap_starts 1 or 2 are required")
 
 
-def load_models(name: str):
-    """(output model, chamfer model): open models bootstrap their chamfer stages on open-low."""
-    from uuomocap.solver_core.body_model import load_body_model
-
-    model = load_body_model(name)
-    return model, (load_body_model("open-low") if name in ("open-low", "open-full") else model)
-
-
 class Solver(Node):
     Config = SolverNodeConfig
     SUBSCRIBES = {
@@ -73,13 +65,14 @@ class Solver(Node):
     def setup(self) -> None:
         import torch
 
+        from uuomocap.solver_core.body_model import load_solver_models
         from uuomocap.solver_core.staged_solver import preload_lazy_imports
         from uuomocap.solver_core.windowed_solver import WindowedSolverConfig
 
         torch.set_num_threads(self.config.threads)
         preload_lazy_imports()  # at start-up: the solver is built on the first marker frame
         c = self.config
-        self.model, self.chamfer_model = load_models(c.body_model)
+        self.model, self.chamfer_model = load_solver_models(c.body_model)
         self.solver_config = replace(WindowedSolverConfig(), bootstrap_s=c.bootstrap_s, lag_frames=c.lag_frames, hop_frames=c.hop_frames,
                                      estimate_iterations=c.estimate_iterations, upgrade_in_background=c.upgrade_in_background)
         if c.smoothness_weight is not None:

@@ -54,7 +54,7 @@ PRIOR_SCALAR_KEYS = ("rate_hz", "camera_frame", "body_model")
 GT_FRAME_KEYS = {"poses": (72,), "trans": (3,), "joints": (24, 3), "stamps_ns": ()}
 GT_SCALAR_KEYS = ("mocap_framerate", "body_model", "gender")
 GT_MARKER_KEYS = ("marker_faces", "marker_bary", "marker_offset_m")
-_UP_AXES = {"+x", "-x", "+y", "-y", "+z", "-z"}
+UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")  # the vertical axis a capture may name
 
 
 class SessionError(ValueError):
@@ -340,8 +340,8 @@ def load_session(path: str | Path, load_prior: bool = True, load_gt: bool = True
     if rate is not None and abs(rate - md.rate_hz) > 0.01 * md.rate_hz:
         raise SessionError(f"{ypath}: markers.rate_hz {rate} but {mfile.name} says {md.rate_hz}")
     up = msec.get("up_axis", md.up_axis)
-    if up not in _UP_AXES:
-        raise SessionError(f"{ypath}: markers.up_axis {up!r} is not one of {', '.join(sorted(_UP_AXES))}")
+    if up not in UP_AXES:
+        raise SessionError(f"{ypath}: markers.up_axis {up!r} is not one of {', '.join(sorted(UP_AXES))}")
     if up != md.up_axis:
         warnings.append(f"session.yaml overrides the marker file's up axis {md.up_axis} with {up}")
 
@@ -413,8 +413,8 @@ def save_session(
     positions = np.asarray(positions, dtype=np.float64)
     if positions.ndim != 3 or positions.shape[2] != 3:
         raise SessionError(f"{directory}: marker positions must be (T, M, 3), got {positions.shape}")
-    if up_axis not in _UP_AXES:
-        raise SessionError(f"{directory}: up_axis {up_axis!r} is not one of {', '.join(sorted(_UP_AXES))}")
+    if up_axis not in UP_AXES:
+        raise SessionError(f"{directory}: up_axis {up_axis!r} is not one of {', '.join(sorted(UP_AXES))}")
     if prior is not None:
         validate_prior(prior, f"{directory}/prior.npz")
     if gt is not None:

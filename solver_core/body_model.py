@@ -236,3 +236,13 @@ def standing_height(model: BodyModel, betas: torch.Tensor | None = None) -> torc
     nb = betas.shape[1]
     v = model.v_template[None] + torch.einsum("nkb,Bb->Bnk", model.shapedirs[..., :nb], betas)
     return v[..., 1].amax(1) - v[..., 1].amin(1)
+
+
+def load_solver_models(name_or_path: str | Path = "open-low") -> tuple[BodyModel, BodyModel]:
+    """(output model, chamfer model) for the solvers: the chamfer stages of an open model run on
+    the low-resolution open model (same skeleton, paper Sec. "Mocap Solving": the chamfer stages
+    do not need the full mesh); any other model is its own chamfer model."""
+    model = load_body_model(name_or_path)
+    if str(name_or_path) in ("open-low", "open-full"):
+        return model, load_body_model("open-low")
+    return model, model

@@ -30,7 +30,7 @@ def session(tmp_path_factory):
 @pytest.fixture(scope="module")
 def streamed(session):
     """Feed the session through WindowedSolver like the solver node does."""
-    from uuomocap.nodes.solver import load_models
+    from uuomocap.solver_core.body_model import load_solver_models as load_models
     from uuomocap.window_methods import session_stream
 
     torch.set_num_threads(1)

@@ -30,9 +30,6 @@ from uuomocap.methods import register_method
 from uuomocap.solver_core.body_params import MarkerAttachment, up_tensor
 from uuomocap.solver_core.prior_preparation import BodyPrior, neutral_prior, prepare_prior, prior_from_npz_arrays
 
-LOW_RES_MODEL = "open-low"
-
-
 @dataclass
 class SolverInputs:
     """What every method needs from a session (or from loose files)."""
@@ -77,14 +74,10 @@ def inputs_from_session(session_dir: Path, body_model: str | None = None, load_g
 
 
 def load_models(body_model: str):
-    """(output model, chamfer model): the chamfer stages use the low-resolution open model when
-    the output model is one of the open models (same skeleton), else the output model itself."""
-    from uuomocap.solver_core.body_model import load_body_model
+    """(output model, chamfer model) (``body_model.load_solver_models``)."""
+    from uuomocap.solver_core.body_model import load_solver_models
 
-    model = load_body_model(body_model)
-    if body_model in ("open-low", "open-full"):
-        return model, load_body_model(LOW_RES_MODEL)
-    return model, model
+    return load_solver_models(body_model)
 
 
 def _require_prior(inputs: SolverInputs, method: str) -> None:

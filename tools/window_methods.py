@@ -79,7 +79,7 @@ def stream_solve(session_dir: Path, body_model: str | None = None, config=None, 
     """
     import torch
 
-    from uuomocap.nodes.solver import load_models
+    from uuomocap.solver_core.body_model import load_solver_models as load_models
     from uuomocap.solver_core.windowed_solver import WindowedSolver, WindowedSolverConfig
 
     torch.set_num_threads(1)

@@ -136,7 +136,7 @@ def long_take(sdir: Path, minutes: float, rate_hz: float, bar) -> dict:
 
     import torch
 
-    from uuomocap.nodes.solver import load_models
+    from uuomocap.solver_core.body_model import load_solver_models as load_models
     from uuomocap.solver_core.windowed_solver import WindowedSolver, WindowedSolverConfig
     from uuomocap.window_methods import session_stream
 
