@@ -22,7 +22,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from uuomocap.protocol.messages import MarkerFrame
-from uuomocap.protocol.session import UP_AXES
 from uuomocap.protocol.natnet import (
     DEFAULT_COMMAND_PORT,
     DEFAULT_DATA_PORT,
@@ -32,9 +31,9 @@ from uuomocap.protocol.natnet import (
     OLDEST_SUPPORTED,
     NatNetClient,
 )
+from uuomocap.protocol.session import UP_AXES
 
 from .base import Node
-
 
 
 @dataclass(frozen=True)

@@ -17,9 +17,9 @@ import numpy as np
 
 from uuomocap.protocol.messages import MarkerFrame
 from uuomocap.protocol.qtm import DEFAULT_PORT, DEFAULT_PROTOCOL_VERSION, QTM_UP_AXIS, QTMClient, QTMError
+from uuomocap.protocol.session import UP_AXES
 
 from .base import Node
-from uuomocap.protocol.session import UP_AXES
 
 
 @dataclass(frozen=True)

@@ -43,7 +43,7 @@ class SolverNodeConfig:
     bootstrap_starts: int = 2
 
     def __post_init__(self):
-        if (self.bootstrap_s <= 0 or self.lag_frames < 0 or self.hop_frames < 1 or (self.estimate_iterations or 1) < 1 or self.threads < 1
+        if (self.bootstrap_s <= 0 or self.lag_frames < 0 or self.hop_frames < 1 or (self.estimate_iterations is not None and self.estimate_iterations < 1) or self.threads < 1
                 or self.defer_refine_hops < 1 or self.bootstrap_starts not in (1, 2)):
             raise ValueError("bootstrap_s > 0, lag_frames >= 0, hop_frames >= 1, estimate_iterations >= 1, threads >= 1, "
                              "defer_refine_hops >= 1, bootstrap_starts 1 or 2 are required")

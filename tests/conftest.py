@@ -15,8 +15,10 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 # The files whose tests take most of the suite's time (seconds on the 2-core CI machine, session
 # 19: 422 / 257 / 168 / 216 / 53; everything else ~100 together).  ``make test`` keeps a file on one
 # worker and hands out files in collection order, two at a time per worker
-# (``--no-loadscope-reorder``); listing the long ones first, in this order, gives the two workers
-# ~590 and ~630 s instead of one worker ending ~2 min after the other with the longest file last.
+# (``--no-loadscope-reorder``); listing the long ones first, in this order, should let the two
+# workers end close together (~600 s each by those numbers) rather than one starting the longest
+# file last.  The first CI runs with it took 734 s (741 s before) on a machine whose speed varies
+# more than that between runs.
 LONG_FILES_FIRST = ("test_windowed.py", "test_solver.py", "test_metrics.py", "test_graph_solver.py", "test_graph.py")
 
 

@@ -581,6 +581,8 @@ def test_solver_node_uses_the_windowed_solvers_defaults_unless_configured():
             assert node.solver_config.smoothness_target == WindowedSolverConfig().smoothness_target
         finally:
             node.teardown()
+    with pytest.raises(ValueError, match="estimate_iterations"):
+        Solver.parse_config({"estimate_iterations": 0}, "solver")
 
 
 def test_estimate_iterations_follow_the_marker_rate_unless_configured(streamed):

@@ -30,6 +30,7 @@ from uuomocap.methods import register_method
 from uuomocap.solver_core.body_params import MarkerAttachment, up_tensor
 from uuomocap.solver_core.prior_preparation import BodyPrior, neutral_prior, prepare_prior, prior_from_npz_arrays
 
+
 @dataclass
 class SolverInputs:
     """What every method needs from a session (or from loose files)."""
