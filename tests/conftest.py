@@ -17,8 +17,8 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 # worker and hands out files in collection order, two at a time per worker
 # (``--no-loadscope-reorder``); listing the long ones first, in this order, should let the two
 # workers end close together (~600 s each by those numbers) rather than one starting the longest
-# file last.  The first CI runs with it took 734 s (741 s before) on a machine whose speed varies
-# more than that between runs.
+# file last.  CI runs with it took 734 and 658 s (741 s before) on a machine whose speed varies
+# by a third between runs.
 LONG_FILES_FIRST = ("test_windowed.py", "test_solver.py", "test_metrics.py", "test_graph_solver.py", "test_graph.py")
 
 
