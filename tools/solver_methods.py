@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from uuomocap.methods import register_method
+from uuomocap.solver_core.body_model import load_solver_models as load_models  # noqa: F401 (callers import it from here)
 from uuomocap.solver_core.body_params import MarkerAttachment, up_tensor
 from uuomocap.solver_core.prior_preparation import BodyPrior, neutral_prior, prepare_prior, prior_from_npz_arrays
 
@@ -72,13 +73,6 @@ def inputs_from_session(session_dir: Path, body_model: str | None = None, load_g
         gt=s.gt,
         source=str(session_dir),
     )
-
-
-def load_models(body_model: str):
-    """(output model, chamfer model) (``body_model.load_solver_models``)."""
-    from uuomocap.solver_core.body_model import load_solver_models
-
-    return load_solver_models(body_model)
 
 
 def _require_prior(inputs: SolverInputs, method: str) -> None:
