@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from uuomocap.methods import register_method
-from uuomocap.solver_core.body_model import load_solver_models as load_models  # noqa: F401 (callers import it from here)
+from uuomocap.solver_core.body_model import load_solver_models as load_models  # the tests import it from here too
 from uuomocap.solver_core.body_params import MarkerAttachment, up_tensor
 from uuomocap.solver_core.prior_preparation import BodyPrior, neutral_prior, prepare_prior, prior_from_npz_arrays
 
