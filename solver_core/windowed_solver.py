@@ -26,7 +26,7 @@ been seen for ``new_track_frames``; a marker whose residual stays above ``slip_t
 re-assigned the same way; when the whole fit degrades (mean residual above
 ``degrade_threshold_m`` for ``degrade_s``, or most visible markers unassigned: a new subject) the
 solver re-bootstraps on the next window while it keeps estimating; every ``recheck_period_s`` the
-correspondence of all markers is re-checked on the recent window.
+correspondence of all markers is re-checked on the recent window (a group of markers per hop).
 
 Memory is bounded: every buffer is a ring (``collections.deque(maxlen=...)``) sized from the
 config and the rate, nothing grows with the take.
@@ -55,6 +55,7 @@ from uuomocap.solver_core.body_params import (
     interpolate_params,
     up_tensor,
 )
+from uuomocap.solver_core.chamfer import vertex_face_table
 from uuomocap.solver_core.inverse_kinematics import (InverseKinematicsConfig, predicted_markers, smooth_normals_in_face_frames,
                                                      solve_inverse_kinematics)
 from uuomocap.solver_core.marker_surface_correspondence import find_marker_surface_points
@@ -269,6 +270,16 @@ class WindowedSolverConfig:
     recheck_frames: int = 48
     # A re-checked point replaces the current one when its mean distance is this much smaller.
     recheck_improvement_m: float = 0.003
+    # Beyond the paper (latency): a re-check is Stage 3 on recheck_samples frames spread over the
+    # recent recheck_frames, recheck_group_markers markers at a time, one group per smoothing hop,
+    # run by ``refine_ready`` half a hop after a pass (after that frame's estimate went out).
+    # Session 20, 120 Hz bench walk, 40 markers: the whole re-check in one frame took 60-100 ms
+    # (48 frames; every marker) and held the stream - the refined results behind it came 80-120 ms
+    # past their lag, twice per 2 s (refined latency p95 = lag + 59 ms; the seconds without a
+    # re-check lag + 7-12 ms).  One group (10 markers, 24 frames) takes ~23 ms, inside a hop's
+    # slack at 120 Hz (10 frames = 83 ms: ~31 ms of estimates + ~25 ms pass).
+    recheck_samples: int = 24
+    recheck_group_markers: int = 10
     # Beyond the paper: a joint whose rotation moves less than this many markers' worth of skin
     # weight (sum over markers of the skinning weight of the joint's subtree) gets its pose prior
     # weighted this much more (40-marker walk: the right ankle swung 0.7 rad off the prior; refined
@@ -314,6 +325,8 @@ class WindowedSolverConfig:
     def __post_init__(self):
         if self.bootstrap_s <= 0 or self.lag_frames < 0 or self.hop_frames < 1 or self.context_frames < 0:
             raise ValueError("bootstrap_s > 0, lag_frames >= 0, hop_frames >= 1, context_frames >= 0 are required")
+        if self.recheck_samples < 2 or self.recheck_group_markers < 1:
+            raise ValueError("recheck_samples >= 2 and recheck_group_markers >= 1 are required")
         if (self.estimate_iterations is not None and self.estimate_iterations < 1) or self.refine_iterations < 0:
             raise ValueError("estimate_iterations >= 1 (or None) and refine_iterations >= 0 are required")
         if self.smoothness_target not in ("bones", "joints"):
@@ -571,6 +584,8 @@ class WindowedSolver:
         threadpool_limits(1, user_api="blas")
         preload_lazy_imports()  # before the stream, not inside the first bootstrap (~3.5 s)
         self.r_wc = camera_to_world_rotation(up_axis)
+        # Stage 3's face table, built once (1.3 ms per re-check group otherwise)
+        self._vertex_faces = vertex_face_table(model.faces, model.v_template.shape[0])
         self._priors: deque = deque(maxlen=config.prior_buffer)
         self._prior72: deque = deque(maxlen=config.prior_buffer)
         self.stats: dict = {"frames": 0, "bootstraps": 0, "rebootstraps": 0, "new_tracks": 0, "slips": 0,
@@ -635,6 +650,8 @@ class WindowedSolver:
         self._slip_run = None
         self._degrade_run = 0
         self._since_recheck = 0
+        self._recheck_groups: deque = deque()  # marker groups of the re-check in progress
+        self._since_pass = 0  # refine_ready calls since the last smoothing pass
         self._lock_age = 0  # frames estimated since the lock was last adopted
         self._reservoir: list[_Frame] = []  # refined frames spread over the take (lock upgrade)
         self._reservoir_stride = 1
@@ -722,6 +739,15 @@ class WindowedSolver:
         while len(self._pending) >= c.lag_frames + c.hop_frames and (max_passes is None or passes < max_passes):
             out += self._refine(c.hop_frames)
             passes += 1
+        if passes:
+            self._since_pass = 0
+        else:
+            self._since_pass += 1
+            if self._recheck_groups and self._since_pass == max(1, c.hop_frames // 2):
+                # half a hop after the pass: this frame's estimate is out, the pass's backlog is
+                # worked off and the next pass is half a hop away (right after the pass, the two
+                # stalls added up for the frames arriving meanwhile)
+                self._recheck(self._recheck_groups.popleft())
         return out
 
     def flush(self) -> list[WindowResult]:
@@ -978,6 +1004,7 @@ class WindowedSolver:
         self.labels_version += 1
         self.locked = True
         self._lock_age = 0
+        self._recheck_groups.clear()  # its frames were estimated under the old lock
 
     def _frames_in_flight(self):
         """Every frame still held (pending, context, history, reservoir), once each: a frame sits
@@ -1399,9 +1426,9 @@ class WindowedSolver:
         # on the old lock's estimates re-assigned 16-32 of 40 markers).  Wait for a window of frames
         # estimated under this one.
         if (c.recheck_period_s > 0 and self._since_recheck >= c.recheck_period_s * rate
-                and self._lock_age >= c.recheck_frames):
+                and self._lock_age >= c.recheck_frames and not self._recheck_groups):
             self._since_recheck = 0
-            self._recheck()
+            self._queue_recheck()
 
     def _keep_in_reservoir(self, f: _Frame) -> None:
         """Keep every stride-th refined frame; when full, drop every other one and double the
@@ -1577,7 +1604,7 @@ class WindowedSolver:
         markers, vis, params = self._recent(frames)
         which = np.asarray(which)
         att = find_marker_surface_points(self.model, markers[:, which], vis[:, which], params, self.up, self.allowed_ids,
-                                         self.config.bootstrap_solver.correspondence)
+                                         self.config.bootstrap_solver.correspondence, self._vertex_faces)
         faces = att.face_ids.numpy()
         ok = faces >= 0
         if not ok.any():
@@ -1591,32 +1618,47 @@ class WindowedSolver:
         self.labels_version += 1
         self._prepare_lock()
 
-    def _recheck(self) -> None:
-        """Re-run Stage 3 for every marker on the recent window; keep a new point only when it fits
-        clearly better than the current one."""
-        c = self.config
+    def _queue_recheck(self) -> None:
+        """Start a re-check: every marker, in interleaved groups of ``recheck_group_markers`` that
+        ``refine_ready`` runs one per hop (``_recheck``)."""
         if len(self._history) < 4:
             return
         self.stats["rechecks"] += 1
+        markers = np.arange(len(self.face_ids))
+        groups = max(1, math.ceil(len(markers) / self.config.recheck_group_markers))
+        self._recheck_groups = deque(markers[g::groups] for g in range(groups))
+
+    def _recheck(self, which: np.ndarray) -> None:
+        """Re-run Stage 3 for the assigned markers among ``which`` on ``recheck_samples`` frames
+        spread over the recent window; keep a new point only when it fits clearly better than the
+        current one."""
+        c = self.config
+        # markers unassigned since the group was queued (a new track) wait for new_track_frames:
+        # the recent frames of their slot may still hold the old track
+        which = np.asarray(which, dtype=np.int64)
+        which = which[self.face_ids[which] >= 0]
+        if len(which) == 0:
+            return
         markers, vis, params = self._recent(c.recheck_frames)
+        n = markers.shape[0]
+        sel = torch.as_tensor(np.unique(np.linspace(0, n - 1, min(n, c.recheck_samples)).round().astype(np.int64)))
+        # both points are scored on the same frames
+        markers, vis, params = markers[sel][:, which], vis[sel][:, which], params.frames(sel)
         att = find_marker_surface_points(self.model, markers, vis, params, self.up, self.allowed_ids,
-                                         c.bootstrap_solver.correspondence)
-        cur = self._attachment()
-        ok = cur.assigned
-        current_score = torch.full((len(self.face_ids),), float("inf"))
-        if ok.any():
-            # scored like Stage 3 scores its candidates: distance to the point + the skin offset
-            with torch.no_grad():
-                posed = predicted_markers(self.model, params, cur, self.up, c.bootstrap_solver.correspondence.marker_offset_m,
-                                          c.ik.offset_model)  # (S,Ma,3)
-            d = (posed - torch.nan_to_num(markers[:, ok])).norm(dim=-1)
-            w = vis[:, ok].float()
-            current_score[ok] = (d * w).sum(0) / w.sum(0).clamp(min=1)
-        better = (att.face_ids >= 0) & (att.score_m < current_score - c.recheck_improvement_m)
-        idx = torch.nonzero(better).reshape(-1).numpy()
-        if len(idx):
-            self.face_ids[idx] = att.face_ids.numpy()[idx]
-            self.bary[idx] = att.bary.double().numpy()[idx]
-            self.stats["reassigned"] += len(idx)
+                                         c.bootstrap_solver.correspondence, self._vertex_faces)
+        whole = self._attachment()
+        cur = MarkerAttachment(whole.face_ids[which], whole.bary[which], whole.score_m[which])
+        # scored like Stage 3 scores its candidates: distance to the point + the skin offset
+        with torch.no_grad():
+            posed = predicted_markers(self.model, params, cur, self.up, c.bootstrap_solver.correspondence.marker_offset_m,
+                                      c.ik.offset_model)  # (S,len(which),3)
+        d = (posed - torch.nan_to_num(markers)).norm(dim=-1)
+        w = vis.float()
+        current_score = torch.where(w.sum(0) > 0, (d * w).sum(0) / w.sum(0).clamp(min=1), torch.full_like(d[0], float("inf")))
+        better = ((att.face_ids >= 0) & (att.score_m < current_score - c.recheck_improvement_m)).numpy()
+        if better.any():
+            self.face_ids[which[better]] = att.face_ids.numpy()[better]
+            self.bary[which[better]] = att.bary.double().numpy()[better]
+            self.stats["reassigned"] += int(better.sum())
             self.labels_version += 1
             self._prepare_lock()

@@ -204,6 +204,59 @@ def test_occlusion_gap_keeps_correspondence(streamed):
     assert np.mean(residuals["after"]) < 1.5 * np.mean(residuals["before"]) + 0.002, residuals
 
 
+def test_a_recheck_runs_in_marker_groups_one_per_hop_between_passes(streamed):
+    """A re-check is Stage 3 for every marker, a group at a time: one group per smoothing hop, in
+    the ``refine_ready`` call half a hop after a pass (the estimate is out; no refined result waits
+    behind it).  A point moved off its marker is put back by its group."""
+    s = _clone(streamed)
+    s.config = replace(s.config, upgrade_frames=0, slip_frames=10_000, recheck_group_markers=10)
+    md, rows = streamed["md"], streamed["rows"]
+    n = md.positions.shape[0]
+    order = np.concatenate([np.arange(n - 1, 0, -1), np.arange(n)])
+    # one marker's point swapped with another marker's (a wrong point a re-check should fix)
+    a, b = np.flatnonzero(s.face_ids >= 0)[[5, 30]]
+    good = s.face_ids[a]
+    s.face_ids[a], s.bary[a] = s.face_ids[b], s.bary[b].copy()
+    s._prepare_lock()
+    before = _attach_error_mm(s, streamed["gt"], streamed["model"])
+    M = len(s.face_ids)
+    s._since_recheck = 10**6  # due at the next frame
+    s._lock_age = 10**6
+    calls = []  # (frame step, markers of the group, passes run before it in that call)
+    real = s._recheck
+    step_now = [0]
+
+    def spy(which):
+        calls.append((step_now[0], list(which)))
+        real(which)
+
+    s._recheck = spy
+    pass_steps = []
+    for step, (st, j, prior) in enumerate(_frames(md, rows, 0, 6 * s.config.hop_frames, int(md.stamps_ns[-1]), order)):
+        step_now[0] = step
+        s.add_prior(*prior)
+        s.push_markers(st, md.positions[j], md.visible[j])
+        groups_before = len(calls)
+        if s.refine_ready():
+            pass_steps.append(step)
+            assert len(calls) == groups_before  # never in a call that ran a pass
+    assert s.stats["rechecks"] >= 1
+    first = calls[: int(np.ceil(M / 10))]
+    # every marker once, interleaved groups of at most 10
+    assert sorted(m for _, g in first for m in g) == list(range(M)) and all(len(g) <= 10 for _, g in first)
+    # one group per hop, half a hop after its pass
+    half = s.config.hop_frames // 2
+    for (s0, _), (s1, _) in zip(first, first[1:]):
+        assert any(s0 < p <= s1 for p in pass_steps), (s0, s1, pass_steps)
+    # (before the clone's first pass, half a hop after its start)
+    assert all(step - half in pass_steps or step == half - 1 < pass_steps[0] for step, _ in first), \
+        ([st for st, _ in first], pass_steps)
+    assert s.face_ids[a] != s.face_ids[b] and s.face_ids[a] >= 0
+    after = _attach_error_mm(s, streamed["gt"], streamed["model"])
+    print(f"\nswapped point: attachment error {before:.1f} -> {after:.1f} mm (marker {a}: face {s.face_ids[a]}, was {good})")
+    assert after < before
+
+
 def test_new_marker_track_gets_assigned(streamed):
     s = _clone(streamed)
     md, rows = streamed["md"], streamed["rows"]
@@ -432,7 +485,7 @@ def test_recheck_keeps_a_good_lock(streamed):
     # skin offset); scored without it every marker looked ~9 mm worse than any fresh candidate
     s = _clone(streamed)
     faces, bary, reassigned, version = s.face_ids.copy(), s.bary.copy(), s.stats["reassigned"], s.labels_version
-    s._recheck()
+    s._recheck(np.arange(len(s.face_ids)))  # every marker in one group
     # a re-assignment may keep the face and move the point on it (new barycentrics)
     moved = int(((s.face_ids != faces) | (np.abs(s.bary - bary).max(axis=1) > 0)).sum())
     assert s.stats["reassigned"] - reassigned == moved
@@ -444,7 +497,7 @@ def test_recheck_keeps_a_good_lock(streamed):
     far = int(ok[np.argmax(np.linalg.norm(last.markers[ok] - last.markers[wrong], axis=1))])  # farthest marker's point
     s.face_ids[wrong], s.bary[wrong] = s.face_ids[far], s.bary[far]
     s._prepare_lock()
-    s._recheck()
+    s._recheck(np.arange(len(s.face_ids)))  # every marker in one group
     assert s.face_ids[wrong] != faces[far] and s.labels_version > version
 
 

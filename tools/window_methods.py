@@ -38,6 +38,9 @@ class StreamRun:
     latency_estimate_ms: np.ndarray
     latency_refined_ms: np.ndarray
     stats: dict = field(default_factory=dict)
+    # per steady-state frame: (frame index, seconds in push_markers, seconds in refine_ready,
+    # frame indices refined by that refine_ready call) - the input of ``queue_latencies``
+    calls: list = field(default_factory=list)
 
     @property
     def steady_fps(self) -> float:
@@ -96,6 +99,7 @@ def stream_solve(session_dir: Path, body_model: str | None = None, config=None, 
     arrival = np.full(T, np.nan)
     stamps = np.asarray(md.stamps_ns[:T], dtype=np.int64)
     bootstrap_s, busy, cpu, steady, clock0, pi = float("nan"), 0.0, 0.0, 0, None, 0
+    calls: list = []
 
     def take(results, now):
         for r in results:
@@ -120,12 +124,15 @@ def stream_solve(session_dir: Path, body_model: str | None = None, config=None, 
             wait = due - time.perf_counter()
             if wait > 0:
                 time.sleep(wait)
-            arrival[i] = due if wait > 0 else time.perf_counter()
+            # the frame arrived when it was due, also when the solver is behind (the wait in the
+            # queue is part of its latency)
+            arrival[i] = due
         elif locked:
             arrival[i] = time.perf_counter()
         c0, t0 = time.process_time(), time.perf_counter()
         res = solver.push_markers(st, md.positions[i], md.visible[i], frame_index=i)
-        take(res, time.perf_counter())
+        tp = time.perf_counter()
+        take(res, tp)
         res = solver.refine_ready()
         t1 = time.perf_counter()
         take(res, t1)
@@ -133,6 +140,7 @@ def stream_solve(session_dir: Path, body_model: str | None = None, config=None, 
             busy += t1 - t0
             cpu += time.process_time() - c0
             steady += 1
+            calls.append((i, tp - t0, t1 - tp, [r.frame_index for r in res if r.kind == "refined"]))
         elif solver.locked:
             bootstrap_s = solver.stats["bootstrap_seconds"][-1]
         if progress is not None:
@@ -140,7 +148,29 @@ def stream_solve(session_dir: Path, body_model: str | None = None, config=None, 
     take(solver.flush(), time.perf_counter())
     return StreamRun(stamps, float(md.rate_hz), est, ref, solver.betas.double().numpy(), solver.labels, bootstrap_s, steady, busy, cpu,
                      lat_e, lat_r, {**solver.stats, "timing": dict(solver.timing),
-                      "lag_frames": solver.config.lag_frames + solver.config.hop_frames - 1})
+                      "lag_frames": solver.config.lag_frames + solver.config.hop_frames - 1}, calls)
+
+
+def queue_latencies(run: StreamRun) -> tuple[np.ndarray, np.ndarray]:
+    """Latencies (ms) of the estimates and the refined frames of the steady state as a solver
+    alone on its core would give them: the frames arrive at the capture rate and are served one
+    at a time, each call taking as long as it took in ``run`` (a single-server queue over the
+    measured per-call times).  On a shared machine the capture-clock latencies also hold the
+    time the process waited for a core; this model leaves that out and keeps what the solver's
+    own work costs, including the queueing behind its own stalls.  Returns (estimate (F,),
+    refined (R,)) for the F steady-state frames and the R frames they refined."""
+    if not run.calls:
+        return np.zeros(0), np.zeros(0)
+    first = run.calls[0][0]
+    free, est, ref = 0.0, [], []
+    for i, push_s, refine_s, refined in run.calls:
+        arrival = (i - first) / run.rate_hz
+        done = max(arrival, free) + push_s
+        est.append(done - arrival)
+        done += refine_s
+        ref += [done - (j - first) / run.rate_hz for j in refined if j >= first]
+        free = done
+    return 1000.0 * np.asarray(est), 1000.0 * np.asarray(ref)
 
 
 def estimate_metrics(run: StreamRun, gt: dict, kind: str = "estimate") -> dict:
