@@ -741,6 +741,8 @@ class WindowedSolver:
             passes += 1
         if passes:
             self._since_pass = 0
+            if self._recheck_groups and c.hop_frames < 2:  # a pass every frame: no call falls between two
+                self._recheck(self._recheck_groups.popleft())
         else:
             self._since_pass += 1
             if self._recheck_groups and self._since_pass == max(1, c.hop_frames // 2):

@@ -255,6 +255,14 @@ def test_a_recheck_runs_in_marker_groups_one_per_hop_between_passes(streamed):
     after = _attach_error_mm(s, streamed["gt"], streamed["model"])
     print(f"\nswapped point: attachment error {before:.1f} -> {after:.1f} mm (marker {a}: face {s.face_ids[a]}, was {good})")
     assert after < before
+    # with a pass at every frame (hop 1) the groups run after the passes
+    h = _clone(streamed)
+    h.config = replace(h.config, upgrade_frames=0, hop_frames=1)
+    h._since_recheck, h._lock_age, h._recheck_groups = 10**6, 10**6, type(h._recheck_groups)()
+    for st, j, prior in _frames(md, rows, 0, h.config.lag_frames + 6, int(md.stamps_ns[-1]), order):
+        h.add_prior(*prior)
+        h.add_markers(st, md.positions[j], md.visible[j])
+    assert h.stats["rechecks"] == streamed["solver"].stats["rechecks"] + 1 and not h._recheck_groups
 
 
 def test_new_marker_track_gets_assigned(streamed):
