@@ -276,8 +276,8 @@ class WindowedSolverConfig:
     # Session 20, 120 Hz bench walk, 40 markers: the whole re-check in one frame took 60-100 ms
     # (48 frames; every marker) and held the stream - the refined results behind it came 80-120 ms
     # past their lag, twice per 2 s (refined latency p95 = lag + 59 ms; the seconds without a
-    # re-check lag + 7-12 ms).  One group (10 markers, 24 frames) takes ~23 ms, inside a hop's
-    # slack at 120 Hz (10 frames = 83 ms: ~31 ms of estimates + ~25 ms pass).
+    # re-check lag + 7-12 ms).  One group (10 markers, 24 frames) takes ~23-35 ms, about a hop's
+    # slack at 120 Hz (10 frames = 83 ms: ~31 ms of estimates + ~25-28 ms pass).
     recheck_samples: int = 24
     recheck_group_markers: int = 10
     # Beyond the paper: a joint whose rotation moves less than this many markers' worth of skin

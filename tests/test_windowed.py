@@ -222,7 +222,7 @@ def test_a_recheck_runs_in_marker_groups_one_per_hop_between_passes(streamed):
     M = len(s.face_ids)
     s._since_recheck = 10**6  # due at the next frame
     s._lock_age = 10**6
-    calls = []  # (frame step, markers of the group, passes run before it in that call)
+    calls = []  # (frame step, markers of the group) of every group run
     real = s._recheck
     step_now = [0]
 
