@@ -95,4 +95,5 @@ class Recorder(Node):
         if self.solved and c.export_npz != "none":
             npz = Path(c.export_npz) if c.export_npz else self.out.with_suffix(".npz")
             info = export_solved_npz(self.solved, npz, method=c.method)
-            self.log.info("exported %d solved frames (%d refined) -> %s", info["frames"], info["refined"], npz)
+            self.log.info("exported %d solved frames (%d refined, %d of them revised) -> %s", info["frames"], info["refined"],
+                          info["revised"], npz)

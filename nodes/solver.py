@@ -3,8 +3,10 @@
 Inputs: ``markers/raw`` (MarkerFrame; a tracker's fixed-slot output works too: a slot whose
 track id changes is a new marker) and ``body/prior`` (BodyPrior, optional: without it the
 bootstrap starts from a neutral body).  Output ``body/solved``: a SolvedFrame 'estimate' for every
-frame as soon as it is solved, and a 'refined' one once the frame leaves the fixed lag; both carry
-the current marker labels.  End of the marker stream flushes every remaining refined frame, then
+frame as soon as it is solved, and a 'refined' one once the frame leaves the fixed lag; after a lock
+upgrade, a 'revised' one for each frame refined under the old lock (the last ``revise_s`` seconds;
+recordings keep it over the refined one; only while the node keeps up).  All carry the current
+marker labels.  End of the marker stream flushes every remaining refined frame, then
 ends ``body/solved``.
 
 Deterministic in lockstep: a frame only ever uses priors stamped at or before it (the replay's

@@ -239,7 +239,7 @@ class MarkerLabels(Message):
             raise MessageError(f"MarkerLabels.marker_parts: {len(self.marker_parts)} for {dims.get('M', 0)} markers")
 
 
-SOLVED_KINDS = ("estimate", "refined")
+SOLVED_KINDS = ("estimate", "refined", "revised")
 
 
 @dataclass(frozen=True)
@@ -247,7 +247,8 @@ class SolvedFrame(Message):
     """Body parameters for one capture frame (AMASS layout, world frame).
 
     kind 'estimate' is the low-latency answer; 'refined' replaces it later
-    (sliding window) and is what recordings export.
+    (sliding window) and is what recordings export; 'revised' replaces a refined frame once a
+    lock upgrade solved it again (recordings keep it over the refined one).
     """
 
     TYPE: ClassVar[str] = "SolvedFrame"

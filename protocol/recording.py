@@ -313,12 +313,16 @@ def read_markers_mcap(path: str | Path, topic: str = "markers/raw", progress: bo
     )
 
 
+_KIND_RANK = {"estimate": 0, "refined": 1, "revised": 2}
+
+
 def best_solved_frames(frames) -> list:
-    """One SolvedFrame per capture stamp: the last 'refined' one, else the last 'estimate'; sorted by stamp."""
+    """One SolvedFrame per capture stamp: the last 'revised' one, else the last 'refined', else the
+    last 'estimate'; sorted by stamp."""
     best: dict[int, object] = {}
     for f in frames:
         prev = best.get(f.stamp_ns)
-        if prev is None or f.kind == "refined" or prev.kind == "estimate":
+        if prev is None or _KIND_RANK.get(f.kind, 0) >= _KIND_RANK.get(prev.kind, 0):
             best[f.stamp_ns] = f
     return [best[k] for k in sorted(best)]
 
@@ -328,8 +332,8 @@ def export_solved_npz(frames, path: str | Path, method: str = "stream", stage_se
 
     betas and the marker labels come from the last frame (the solver's latest shape and
     assignment); ``frame_betas`` (F, B) is the shape each frame was solved under (a lock upgrade
-    changes it mid-take; pose a frame with its own row); ``frame_kind`` says per frame whether a
-    refined answer existed.
+    changes it mid-take; pose a frame with its own row); ``frame_kind`` says per frame which
+    answer it holds (estimate, refined, or revised after a lock upgrade).
     """
     frames = best_solved_frames(frames)
     if not frames:
@@ -365,7 +369,8 @@ def export_solved_npz(frames, path: str | Path, method: str = "stream", stage_se
     np.savez(tmp, **out)
     os.replace(tmp, path)
     kinds = out["frame_kind"]
-    return {"frames": len(frames), "refined": int((kinds == "refined").sum()), "path": str(path)}
+    return {"frames": len(frames), "refined": int(np.isin(kinds, ("refined", "revised")).sum()),
+            "revised": int((kinds == "revised").sum()), "path": str(path)}
 
 
 __all__ = [

@@ -318,11 +318,25 @@ class WindowedSolverConfig:
     # reservoir re-solved under the current lock (upgrade_check_iterations per frame each).
     upgrade_accept_ratio: float = 1.0
     upgrade_check_iterations: int = 4
+    # Beyond the paper: when a lock upgrade is adopted, the frames already refined under the old
+    # lock (up to revise_s seconds back; memory stays bounded) are solved again under the new one
+    # - the same estimate and smoothing pass, warm-started from their refined poses - and come out
+    # as 'revised' results, which recordings keep over the 'refined' ones.  The refined output of
+    # the first seconds runs on the bootstrap's lock from 3 s of markers; the upgrades' locks from
+    # more of the take fit it much better.  Session 21 (own script, the bench's 30 Hz walk / jump /
+    # arms, 40 markers, MPJPE mm): refined 10.22 / 10.34 / 7.82, those frames re-solved under the
+    # final lock 8.35 / 6.31 / 7.78, offline 7.01 / 7.68 / 7.02.  0 = no revisions.
+    revise_s: float = 30.0
+    # Gauss-Newton iterations of a revised frame's estimate under the new lock (its refined pose
+    # under the old lock is the start).
+    revise_iterations: int = 4
     # Ring sizes: recent frames kept for re-assignment (frames), priors kept (messages).
     history_frames: int = 64
     prior_buffer: int = 512
 
     def __post_init__(self):
+        if self.revise_s < 0 or self.revise_iterations < 1:
+            raise ValueError("revise_s >= 0 and revise_iterations >= 1 are required")
         if self.bootstrap_s <= 0 or self.lag_frames < 0 or self.hop_frames < 1 or self.context_frames < 0:
             raise ValueError("bootstrap_s > 0, lag_frames >= 0, hop_frames >= 1, context_frames >= 0 are required")
         if self.recheck_samples < 2 or self.recheck_group_markers < 1:
@@ -339,7 +353,8 @@ class WindowedSolverConfig:
 class WindowResult:
     """One solved frame.  poses (72,) world-frame AMASS axis-angle (yaw folded into the root);
     trans (3,), joints (24,3) metres; betas (B,); residual_m: mean distance of the visible assigned
-    markers to their predicted positions; kind 'estimate' or 'refined'."""
+    markers to their predicted positions; kind 'estimate', 'refined' or 'revised' (a refined
+    frame solved again after a lock upgrade, ``WindowedSolverConfig.revise_s``)."""
 
     stamp_ns: int
     frame_index: int
@@ -657,6 +672,10 @@ class WindowedSolver:
         self._reservoir_stride = 1
         self._reservoir_seen = 0
         self._locked_span = 0  # frames the current lock was estimated from
+        # refined frames a lock upgrade may revise (the last revise_s seconds; made at the bootstrap,
+        # when the rate is known) and the revision in progress ({"frames", "pos", "ready"})
+        self._refined_ring: deque | None = None
+        self._revision: dict | None = None
         # bumped by every (re-)bootstrap and reset: a background upgrade of an older lock is dropped
         self._lock_generation = getattr(self, "_lock_generation", 0) + 1
         self.cancel_upgrade()  # a running upgrade belongs to the old lock
@@ -732,7 +751,9 @@ class WindowedSolver:
 
     def refine_ready(self, max_passes: int | None = None) -> list[WindowResult]:
         """Run the smoothing pass when a hop of frames has left the lag (every due pass, or at most
-        ``max_passes``: a caller that is behind spreads them out); returns refined frames."""
+        ``max_passes``: a caller that is behind spreads them out); returns refined frames, and
+        revised ones while a revision after a lock upgrade is in progress (``revise_s``; a caller
+        that is behind gets none)."""
         c = self.config
         out: list[WindowResult] = []
         passes = 0
@@ -750,6 +771,13 @@ class WindowedSolver:
                 # worked off and the next pass is half a hop away (right after the pass, the two
                 # stalls added up for the frames arriving meanwhile)
                 self._recheck(self._recheck_groups.popleft())
+        if self._revision is not None and max_passes is None:
+            if not c.upgrade_in_background:
+                out += self._revise_all()  # a replay: at once, where the upgrade landed (deterministic)
+            elif (self._since_pass == max(1, (3 * c.hop_frames) // 4)) if c.hop_frames >= 4 else passes:
+                # live: one hop of revision per hop of stream (as much work as one more smoothing
+                # pass), three quarters of a hop after the pass, away from the pass and the re-check
+                out += self._revise_step()
         return out
 
     def flush(self) -> list[WindowResult]:
@@ -758,6 +786,7 @@ class WindowedSolver:
         self.cancel_upgrade()  # its lock could only serve frames that are final now
         if not self.locked and self._boot:
             out += self._bootstrap(list(self._boot), rebootstrap=False)
+        out += self._revise_all()
         while self._pending:
             out += self._refine(min(len(self._pending), self.config.lag_frames + self.config.hop_frames), final=True)
         return out
@@ -812,7 +841,7 @@ class WindowedSolver:
         """Lengths of every internal buffer (the memory-bound test watches these)."""
         return {"priors": len(self._priors), "pending": len(self._pending), "context": len(self._context),
                 "history": len(self._history), "bootstrap": len(self._boot) if self._boot is not None else 0,
-                "reservoir": len(self._reservoir)}
+                "reservoir": len(self._reservoir), "refined_ring": len(self._refined_ring or ())}
 
     # ------------------------------------------------------------------ bootstrap
     def _boot_frames_needed(self) -> int:
@@ -874,6 +903,10 @@ class WindowedSolver:
         old_yaw = self.yaw
         self.shape_prior = torch.as_tensor(np.asarray(shape), dtype=torch.float32)
         self._reservoir, self._reservoir_stride, self._reservoir_seen = [], 1, 0
+        # a (re-)bootstrap starts over: frames before it may be another subject's, or a failed fit's
+        ring = int(round(c.revise_s * rate))
+        self._refined_ring = deque(maxlen=ring) if ring > 0 else None
+        self._revision = None
         self._locked_span = len(frames)
         self._lock_generation += 1
         self.has_prior = has_prior
@@ -1012,7 +1045,7 @@ class WindowedSolver:
         """Every frame still held (pending, context, history, reservoir), once each: a frame sits
         in several rings."""
         seen: set[int] = set()
-        for f in chain(self._pending, self._context, self._history, self._reservoir):
+        for f in chain(self._pending, self._context, self._history, self._reservoir, self._refined_ring or ()):
             if id(f) not in seen:
                 seen.add(id(f))
                 yield f
@@ -1250,34 +1283,88 @@ class WindowedSolver:
         c = self.config
         ctx = list(self._context)[-c.context_frames:] if c.context_frames else []
         free = list(self._pending)[: c.lag_frames + c.hop_frames] if not final else list(self._pending)[:count]
-        window = ctx + free
-        T, F, C = len(window), len(free), len(ctx)
-        if c.refine_iterations and F > 0:
-            theta = np.stack([f.theta for f in window])
-            trans = np.stack([f.trans for f in window])
-            markers = np.stack([f.markers for f in window])
-            vis = np.stack([f.visible for f in window])
-            prior = np.stack([f.prior for f in window])
-            for _ in range(c.refine_iterations):
-                step = self._window_step(theta, trans, markers, vis, prior, C)
-                theta[C:] += step[:, :N_POSE]
-                trans[C:] += step[:, N_POSE:]
-                theta[:, :3] = wrap_rotation_vector(theta[:, :3])
-            for i, f in enumerate(free):
-                f.theta, f.trans = theta[C + i], trans[C + i]
+        self._smooth(ctx, free)
         done = [self._pending.popleft() for _ in range(min(count, len(self._pending)))]
-        out = []
-        if done:
-            th = np.stack([f.theta for f in done])
-            tr = np.stack([f.trans for f in done])
-            lin = self._linearize(th, tr, np.stack([f.markers for f in done]), np.stack([f.visible for f in done]), jacobian=False)
-            for i, f in enumerate(done):
-                f.residual, f.joints = float(lin["residual"][i]), lin["joints"][i]
-                self._context.append(f)
-                self._keep_in_reservoir(f)
-                out.append(self._result(f, "refined", lin["root_world"][i]))
+        out = self._finalise(done, "refined")
+        for f in done:
+            self._context.append(f)
+            self._keep_in_reservoir(f)
+            if self._refined_ring is not None:
+                self._refined_ring.append(f)
         self.timing["refine_s"] += time.perf_counter() - t0
         self.timing["refines"] += 1
+        return out
+
+    def _smooth(self, ctx: list, free: list) -> None:
+        """``refine_iterations`` smoothing steps over [ctx | free]; the free frames' poses are updated."""
+        c = self.config
+        window = ctx + free
+        C = len(ctx)
+        if not c.refine_iterations or not free:
+            return
+        theta = np.stack([f.theta for f in window])
+        trans = np.stack([f.trans for f in window])
+        markers = np.stack([f.markers for f in window])
+        vis = np.stack([f.visible for f in window])
+        prior = np.stack([f.prior for f in window])
+        for _ in range(c.refine_iterations):
+            step = self._window_step(theta, trans, markers, vis, prior, C)
+            theta[C:] += step[:, :N_POSE]
+            trans[C:] += step[:, N_POSE:]
+            theta[:, :3] = wrap_rotation_vector(theta[:, :3])
+        for i, f in enumerate(free):
+            f.theta, f.trans = theta[C + i], trans[C + i]
+
+    def _finalise(self, done: list, kind: str) -> list[WindowResult]:
+        """Residuals, joints and results of final frames."""
+        if not done:
+            return []
+        th = np.stack([f.theta for f in done])
+        tr = np.stack([f.trans for f in done])
+        lin = self._linearize(th, tr, np.stack([f.markers for f in done]), np.stack([f.visible for f in done]), jacobian=False)
+        out = []
+        for i, f in enumerate(done):
+            f.residual, f.joints = float(lin["residual"][i]), lin["joints"][i]
+            out.append(self._result(f, kind, lin["root_world"][i]))
+        return out
+
+    # ------------------------------------------------------------------ revisions after a lock upgrade
+    def _start_revision(self) -> None:
+        """Queue every frame refined under the previous lock (the ring) for a revision under this one."""
+        if not self._refined_ring:
+            return
+        self._revision = {"frames": list(self._refined_ring), "pos": 0, "ready": 0}
+        self.stats["revisions"] = self.stats.get("revisions", 0) + 1
+
+    def _revise_step(self) -> list[WindowResult]:
+        """One hop of the revision in progress, as the stream does it: the frames entering the
+        window are estimated under the new lock (``revise_iterations`` from their refined poses),
+        the smoothing pass runs over [revised context | lag + hop frames] and the first hop of them
+        comes out 'revised'."""
+        c = self.config
+        rev = self._revision
+        R, a = rev["frames"], rev["pos"]
+        end = min(len(R), a + c.lag_frames + c.hop_frames)
+        if rev["ready"] < end:
+            new = R[rev["ready"]:end]
+            theta, trans = self._gauss_newton(np.stack([f.theta for f in new]), np.stack([f.trans for f in new]),
+                                              np.stack([f.markers for f in new]), np.stack([f.visible for f in new]),
+                                              np.stack([f.prior for f in new]), c.revise_iterations)
+            for i, f in enumerate(new):
+                f.theta, f.trans = theta[i], trans[i]
+            rev["ready"] = end
+        self._smooth(R[max(0, a - c.context_frames):a] if c.context_frames else [], R[a:end])
+        done = R[a:a + c.hop_frames] if end < len(R) else R[a:end]
+        rev["pos"] = a + len(done)
+        if rev["pos"] >= len(R):
+            self._revision = None
+        self.stats["revised_frames"] = self.stats.get("revised_frames", 0) + len(done)
+        return self._finalise(done, "revised")
+
+    def _revise_all(self) -> list[WindowResult]:
+        out: list[WindowResult] = []
+        while self._revision is not None:
+            out += self._revise_step()
         return out
 
     def _window_step(self, theta, trans, markers, vis, prior, n_fixed: int) -> np.ndarray:
@@ -1567,6 +1654,7 @@ class WindowedSolver:
         old_yaw = self.yaw
         self._adopt_lock(res)
         self._reyaw_in_flight(old_yaw)
+        self._start_revision()
 
     @staticmethod
     def _same_part(a, b) -> bool:

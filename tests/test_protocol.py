@@ -308,24 +308,26 @@ def test_recording_round_trip_truncation_and_markers(tmp_path):
         assert prefix == list(range(len(prefix)))
 
 
-def test_solved_export_layout_prefers_refined_and_is_deterministic(tmp_path):
+def test_solved_export_layout_prefers_revised_then_refined_and_is_deterministic(tmp_path):
     frames = [solved(i, "estimate") for i in range(10)] + [solved(i, "refined") for i in range(8)]
     frames.append(solved(9, "estimate"))  # a later estimate never replaces a refined frame... nor needs one
+    revised = [solved(i, "revised") for i in (5, 6)]  # after a lock upgrade
+    frames += revised + [solved(6, "refined")]  # ... and a refined frame never replaces a revised one
     a, b = tmp_path / "a.npz", tmp_path / "b.npz"
     info = export_solved_npz(frames, a, method="stream")
     export_solved_npz(list(frames), b, method="stream")
     assert a.read_bytes() == b.read_bytes()
-    assert info == {"frames": 10, "refined": 8, "path": str(a)}
+    assert info == {"frames": 10, "refined": 8, "revised": 2, "path": str(a)}
     with np.load(a, allow_pickle=False) as z:
         assert z["poses"].shape == (10, 72) and z["joints"].shape == (10, 24, 3) and z["trans"].shape == (10, 3)
         assert z["betas"].shape == (16,) and z["marker_parts"].tolist() == ["left_arm"] * 5
         assert z["marker_faces"].dtype == np.int64 and z["marker_bary"].shape == (5, 3)
         assert float(z["mocap_framerate"]) == 120.0 and str(z["method"]) == "stream" and str(z["body_model"]) == "open-low"
-        assert z["frame_kind"].tolist() == ["refined"] * 8 + ["estimate"] * 2
-        assert np.array_equal(z["poses"][3], frames[13].poses)
+        assert z["frame_kind"].tolist() == ["refined"] * 5 + ["revised"] * 2 + ["refined"] + ["estimate"] * 2
+        assert np.array_equal(z["poses"][3], frames[13].poses) and np.array_equal(z["poses"][6], revised[1].poses)
         # each frame keeps the shape it was solved under (a lock upgrade changes it mid-take)
         assert z["frame_betas"].shape == (10, 16) and np.array_equal(z["frame_betas"][3], frames[13].betas)
-        assert np.array_equal(z["frame_betas"][9], frames[-1].betas) and np.array_equal(z["betas"], frames[-1].betas)
+        assert np.array_equal(z["frame_betas"][9], frames[18].betas) and np.array_equal(z["betas"], frames[18].betas)
 
 
 def test_config_parsing_names_the_problem():

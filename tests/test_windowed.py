@@ -312,6 +312,9 @@ def test_buffers_do_not_grow_with_the_take(streamed):
         if step + 1 in (500, 700):
             sizes[step + 1] = s.buffer_sizes()
     reservoir = {k: v.pop("reservoir") for k, v in sizes.items()}
+    # the frames a lock upgrade may revise: the last revise_s seconds (not yet full after 23 s)
+    ring = {k: v.pop("refined_ring") for k, v in sizes.items()}
+    assert s._refined_ring.maxlen == round(s.config.revise_s * md.rate_hz) and ring[500] < ring[700] <= s._refined_ring.maxlen
     assert sizes[500] == sizes[700], sizes
     c = s.config
     assert all(8 <= r <= c.upgrade_frames for r in reservoir.values()), reservoir
@@ -446,6 +449,65 @@ def test_lock_upgrade_on_the_reservoir_repairs_a_wrong_lock(streamed):
     assert f._worker is None
     with pytest.raises(RuntimeError, match="shutdown"):
         worker.submit(None, None, 30.0, "+z", None, None, None)
+
+
+def test_a_lock_upgrade_revises_the_frames_refined_under_the_old_lock(streamed):
+    """Frames refined under a wrong lock come out again, 'revised', once an upgrade repaired the
+    lock: each frame of the ring once, in order, under the new shape, fitting its markers better.
+    A replay revises at once; a live solver one hop per hop, only while it keeps up; flush
+    finishes a revision in progress."""
+    md, rows, gt = streamed["md"], streamed["rows"], streamed["gt"]
+    n = md.positions.shape[0]
+    order = np.concatenate([np.arange(n - 1, 0, -1), np.arange(n)])
+    last = int(md.stamps_ns[-1])
+
+    def stream(solver, count, start=0, **kw):
+        source, out = {}, []
+        for st, j, prior in _frames(md, rows, start, count, last + start * 10**8, order):
+            solver.add_prior(*prior)
+            source[solver._index] = j
+            res = solver.push_markers(st, md.positions[j], md.visible[j])
+            res += solver.refine_ready(**kw)
+            out.append(res)
+        return source, out
+
+    quiet = dict(upgrade_growth=1e9, recheck_period_s=0.0, slip_frames=10_000)  # the upgrades and revisions below only
+    s = _mislocked_clone(streamed)
+    s.config = replace(s.config, **quiet)
+    source, _ = stream(s, 60)  # refined under the wrong lock
+    wrong = {f.index: f for f in s._refined_ring if f.index in source}
+    refined = {i: (f.residual, f.joints.copy()) for i, f in wrong.items()}
+    ring = [f.index for f in s._refined_ring]
+    s._upgrade_lock()
+    assert s.stats["upgrades"] == 1 and s.stats["revisions"] == 1, s.stats
+    _, calls = stream(s, 1, start=60)
+    revised = [r for r in calls[0] if r.kind == "revised"]
+    assert [r.frame_index for r in revised] == ring  # each once, in order
+    assert all(np.array_equal(r.betas, s.betas.double().numpy()) for r in revised)
+    got = {r.frame_index: r for r in revised}
+    before = np.mean([refined[i][0] for i in wrong])
+    after = np.mean([got[i].residual_m for i in wrong])
+    err = lambda joints, i: 1000 * np.linalg.norm(joints[:22] - gt["joints"][source[i]][:22], axis=-1).mean()
+    mp_before = np.mean([err(refined[i][1], i) for i in wrong])
+    mp_after = np.mean([err(got[i].joints, i) for i in wrong])
+    print(f"\nrevised {len(revised)} frames; under the wrong lock: residual {before * 1e3:.2f} -> {after * 1e3:.2f} mm, "
+          f"MPJPE {mp_before:.1f} -> {mp_after:.1f} mm")
+    assert after < before and mp_after < mp_before
+    assert s._revision is None and not any(r.kind == "revised" for r in s.flush())
+
+    # live: the upgrade lands in the background; one hop of revised frames per hop of stream
+    b = _mislocked_clone(streamed)
+    b.config = replace(b.config, upgrade_in_background=True, **quiet)
+    stream(b, 60)
+    b._start_revision()
+    total = len(b._revision["frames"])
+    _, calls = stream(b, 3 * b.config.hop_frames, start=60, max_passes=1)
+    assert not any(r.kind == "revised" for res in calls for r in res)  # behind: none
+    _, calls = stream(b, 3 * b.config.hop_frames, start=90)
+    per_call = [sum(r.kind == "revised" for r in res) for res in calls]
+    assert sum(1 for k in per_call if k) == 3 and max(per_call) == b.config.hop_frames, per_call
+    rest = [r for r in b.flush() if r.kind == "revised"]
+    assert len(rest) == total - 3 * b.config.hop_frames and b._revision is None
 
 
 def test_reservoir_stays_bounded_and_spread_over_a_long_take(streamed):

@@ -3,9 +3,10 @@ frame-by-frame session driver ``uuomocap bench speed`` uses.
 
 The session is fed to ``WindowedSolver`` exactly as the ``solver`` node sees it: priors and
 marker frames in capture-stamp order (a prior is handed over once the marker clock reached its
-stamp).  OUT.npz holds the REFINED frames (what recordings export); the causal ``estimate`` of
-every frame is kept as extra keys ``estimate_poses`` / ``estimate_trans`` / ``estimate_joints``
-and, when the session has ground truth, its accuracy is in the info dict.
+stamp).  OUT.npz holds what a recording of the stream exports: the REVISED frames where a lock
+upgrade revised them, else the REFINED ones; the fixed-lag refined output and the causal
+``estimate`` of every frame are kept as extra keys ``refined_*`` / ``estimate_*`` (poses, trans,
+joints) and, when the session has ground truth, their accuracy is in the info dict.
 """
 
 from __future__ import annotations
@@ -22,8 +23,9 @@ from uuomocap.methods import register_method
 
 @dataclass
 class StreamRun:
-    """Everything a streamed solve produced.  Per frame (T,): stamps; estimate_* / refined_*
-    poses (T,72), trans (T,3), joints (T,24,3); latency_*_ms (T,) NaN where not measured."""
+    """Everything a streamed solve produced.  Per frame (T,): stamps; estimate / refined / revised
+    poses (T,72), trans (T,3), joints (T,24,3) (NaN where a frame has none: revised only where a lock
+    upgrade revised it); latency_*_ms (T,) NaN where not measured."""
 
     stamps_ns: np.ndarray
     rate_hz: float
@@ -41,6 +43,15 @@ class StreamRun:
     # per steady-state frame: (frame index, seconds in push_markers, seconds in refine_ready,
     # frame indices refined by that refine_ready call) - the input of ``queue_latencies``
     calls: list = field(default_factory=list)
+    revised: dict = field(default_factory=dict)
+
+    @property
+    def recording(self) -> dict:
+        """What a recording of the stream holds per frame: the last revised result, else the refined one."""
+        if not self.revised:
+            return self.refined
+        has = np.isfinite(self.revised["poses"]).all(axis=1)
+        return {k: np.where(has.reshape((-1,) + (1,) * (v.ndim - 1)), self.revised[k], v) for k, v in self.refined.items()}
 
     @property
     def steady_fps(self) -> float:
@@ -95,6 +106,7 @@ def stream_solve(session_dir: Path, body_model: str | None = None, config=None, 
     ref = {k: v.copy() for k, v in est.items()}
     # the shape each refined frame was solved under (a lock upgrade changes it mid-take)
     ref["betas"] = np.full((T, model.num_betas), np.nan)
+    rev = {k: v.copy() for k, v in ref.items()}
     lat_e, lat_r = np.full(T, np.nan), np.full(T, np.nan)
     arrival = np.full(T, np.nan)
     stamps = np.asarray(md.stamps_ns[:T], dtype=np.int64)
@@ -103,12 +115,12 @@ def stream_solve(session_dir: Path, body_model: str | None = None, config=None, 
 
     def take(results, now):
         for r in results:
-            d = est if r.kind == "estimate" else ref
+            d = {"estimate": est, "refined": ref, "revised": rev}[r.kind]
             i = r.frame_index
             d["poses"][i], d["trans"][i], d["joints"][i] = r.poses, r.trans, r.joints
-            if r.kind == "refined":
+            if r.kind != "estimate":
                 d["betas"][i] = r.betas
-            if not np.isnan(arrival[i]):
+            if r.kind != "revised" and not np.isnan(arrival[i]):
                 (lat_e if r.kind == "estimate" else lat_r)[i] = 1000.0 * (now - arrival[i])
 
     for i in range(T):
@@ -148,7 +160,8 @@ def stream_solve(session_dir: Path, body_model: str | None = None, config=None, 
     take(solver.flush(), time.perf_counter())
     return StreamRun(stamps, float(md.rate_hz), est, ref, solver.betas.double().numpy(), solver.labels, bootstrap_s, steady, busy, cpu,
                      lat_e, lat_r, {**solver.stats, "timing": dict(solver.timing),
-                      "lag_frames": solver.config.lag_frames + solver.config.hop_frames - 1}, calls)
+                      "lag_frames": solver.config.lag_frames + solver.config.hop_frames - 1}, calls,
+                     rev if np.isfinite(rev["poses"]).any() else {})
 
 
 def queue_latencies(run: StreamRun) -> tuple[np.ndarray, np.ndarray]:
@@ -174,10 +187,11 @@ def queue_latencies(run: StreamRun) -> tuple[np.ndarray, np.ndarray]:
 
 
 def estimate_metrics(run: StreamRun, gt: dict, kind: str = "estimate") -> dict:
-    """MPJPE (mm) and MPJVE (mm/s) of the estimate (or refined) joints against gt.npz arrays."""
+    """MPJPE (mm) and MPJVE (mm/s) of the estimate, refined or recording (revised, else refined)
+    joints against gt.npz arrays."""
     from uuomocap.solver_core.metrics import mpjpe, mpjve
 
-    joints = (run.estimate if kind == "estimate" else run.refined)["joints"]
+    joints = {"estimate": run.estimate, "refined": run.refined, "recording": run.recording}[kind]["joints"]
     gj = np.asarray(gt["joints"])[: len(joints)]
     ok = np.isfinite(joints).all(axis=(1, 2))
     if not ok.all():
@@ -186,7 +200,8 @@ def estimate_metrics(run: StreamRun, gt: dict, kind: str = "estimate") -> dict:
 
 
 def uuo_window(session_dir: Path, out_npz: Path, body_model: str | None = None, progress=None, **opts) -> dict:
-    """Near-online sliding-window solver (refined output; the causal estimate as extra keys)."""
+    """Near-online sliding-window solver (the recording: revised, else refined frames; the
+    fixed-lag refined and the causal estimate as extra keys)."""
     from uuomocap.protocol.session import write_npz
 
     t0 = time.perf_counter()
@@ -194,14 +209,15 @@ def uuo_window(session_dir: Path, out_npz: Path, body_model: str | None = None, 
     md, _, _, session_model, gt = session_stream(Path(session_dir))
     labels = run.labels
     M = md.positions.shape[1]
+    rec = run.recording
     out = {
         "betas": run.betas,
-        "frame_betas": run.refined["betas"],
-        "poses": run.refined["poses"],
-        "trans": run.refined["trans"],
+        "frame_betas": rec["betas"],
+        "poses": rec["poses"],
+        "trans": rec["trans"],
         "mocap_framerate": np.float64(run.rate_hz),
         "body_model": np.str_(body_model or session_model),
-        "joints": run.refined["joints"],
+        "joints": rec["joints"],
         "stamps_ns": run.stamps_ns,
         "marker_parts": np.array(labels.parts if labels else [""] * M, dtype="<U32"),
         "marker_faces": (labels.face_ids if labels else np.full(M, -1)).astype(np.int64),
@@ -210,6 +226,9 @@ def uuo_window(session_dir: Path, out_npz: Path, body_model: str | None = None, 
         "estimate_poses": run.estimate["poses"],
         "estimate_trans": run.estimate["trans"],
         "estimate_joints": run.estimate["joints"],
+        "refined_poses": run.refined["poses"],
+        "refined_trans": run.refined["trans"],
+        "refined_joints": run.refined["joints"],
     }
     secs = {"bootstrap": round(run.bootstrap_s, 3), "total": round(time.perf_counter() - t0, 3)}
     out["stage_seconds"] = np.str_(json.dumps(secs))
@@ -217,10 +236,12 @@ def uuo_window(session_dir: Path, out_npz: Path, body_model: str | None = None, 
     info = {"method": "uuo-window", "stage_seconds": secs, "steady_fps": round(run.steady_fps, 1),
             "steady_fps_cpu": round(run.steady_fps_cpu, 1),
             "rebootstraps": run.stats.get("rebootstraps", 0), "reassigned": run.stats.get("reassigned", 0),
+            "revised_frames": int(np.isfinite(run.revised["poses"]).all(axis=1).sum()) if run.revised else 0,
             # Stage-5 marker fit (mm) of each bootstrap start, and the one locked
             "bootstrap_start_fits_mm": run.stats.get("bootstrap_start_fits_mm"), "bootstrap_start_chosen": run.stats.get("bootstrap_start_chosen")}
     if gt is not None and "joints" in gt:
-        info.update({k: round(v, 3) for k, v in estimate_metrics(run, gt, "estimate").items()})
+        for kind in ("estimate", "refined"):
+            info.update({k: round(v, 3) for k, v in estimate_metrics(run, gt, kind).items()})
     return info
 
 

@@ -97,7 +97,7 @@ def analyse(mcap: Path, expected_frames: int) -> dict:
             marker_pt[env.stamp_ns] = env.publish_ns
             recv_lat.append((rec.log_time_ns - rec.publish_time_ns) / 1e6)
         elif env.type == "SolvedFrame":
-            solved[env.message.kind].append((env.stamp_ns, env.publish_ns))
+            solved.setdefault(env.message.kind, []).append((env.stamp_ns, env.publish_ns))
             first_answer.setdefault(env.stamp_ns, env.publish_ns)
     seqs_arr = np.array(sorted(seqs))
     gaps = int(np.sum(np.diff(seqs_arr) - 1)) if len(seqs_arr) > 1 else 0
