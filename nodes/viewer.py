@@ -59,6 +59,8 @@ class Viewer(Node):
         self.frames_drawn = 0
 
     def on_solved(self, msg, env) -> None:
+        if msg.kind == "revised":
+            return  # a past frame re-solved after a lock upgrade, for the recording: the view stays live
         self.solved = msg
         self.latency_ms["solved"] = (time.monotonic_ns() - env.publish_ns) / 1e6
 

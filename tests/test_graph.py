@@ -6,6 +6,7 @@ no sleep is an assertion.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -567,3 +568,11 @@ def test_viewer_draws_skeleton_and_markers(tmp_path):
     red = (img[:, :, 2] > 150) & (img[:, :, 0] < 100) & (img[:, :, 1] < 100)
     green = (img[:, :, 1] > 100) & (img[:, :, 0] < 100) & (img[:, :, 2] < 100)
     assert red.sum() > 20 and green.sum() > 100  # markers drawn as dots, bones as lines
+    # a past frame revised after a lock upgrade is for the recording; the view stays on the live frame
+    import types
+
+    live = v.solved
+    v.on_solved(dataclasses.replace(live, kind="revised", frame_index=-5), types.SimpleNamespace(publish_ns=0))
+    assert v.solved is live
+    v.on_solved(dataclasses.replace(live, frame_index=1), types.SimpleNamespace(publish_ns=0))
+    assert v.solved.frame_index == 1
