@@ -67,6 +67,7 @@ from uuomocap.solver_core.prior_preparation import (
     neutral_prior,
     prepare_prior,
 )
+from uuomocap.solver_core.rotations import matrix_to_axis_angle
 from uuomocap.solver_core.staged_solver import (
     SolverConfig,
     SolverProgress,
@@ -330,13 +331,20 @@ class WindowedSolverConfig:
     # Gauss-Newton iterations of a revised frame's estimate under the new lock (its refined pose
     # under the old lock is the start).
     revise_iterations: int = 4
+    # Live (upgrade_in_background): one hop of revision every this many hops of stream.  A step
+    # costs a bit more than a smoothing pass (~30 ms for 10 frames here) and stalls the frames
+    # arriving meanwhile.  Session 21, 120 Hz walk, 40 markers, on the capture clock, per second
+    # while revising: one step every hop put the solver over its capacity (estimate p95 15 -> 540
+    # ms), every third hop 26-44 ms, every sixth 17-29 ms (without revisions 16-19 ms); a sixth
+    # revises 20 frames per second of stream, the rest when the take ends (flush).
+    revise_every_hops: int = 6
     # Ring sizes: recent frames kept for re-assignment (frames), priors kept (messages).
     history_frames: int = 64
     prior_buffer: int = 512
 
     def __post_init__(self):
-        if self.revise_s < 0 or self.revise_iterations < 1:
-            raise ValueError("revise_s >= 0 and revise_iterations >= 1 are required")
+        if self.revise_s < 0 or self.revise_iterations < 1 or self.revise_every_hops < 1:
+            raise ValueError("revise_s >= 0, revise_iterations >= 1 and revise_every_hops >= 1 are required")
         if self.bootstrap_s <= 0 or self.lag_frames < 0 or self.hop_frames < 1 or self.context_frames < 0:
             raise ValueError("bootstrap_s > 0, lag_frames >= 0, hop_frames >= 1, context_frames >= 0 are required")
         if self.recheck_samples < 2 or self.recheck_group_markers < 1:
@@ -473,6 +481,12 @@ def rotation_vector(rot: np.ndarray) -> np.ndarray:
     n = math.sqrt(x * x + y * y + z * z)
     f = 2.0 * math.atan2(n, w) / n if n > 1e-12 else 2.0 / max(w, 1e-12)
     return np.array([x * f, y * f, z * f])
+
+
+def rotation_vectors(rot: np.ndarray) -> np.ndarray:
+    """Batched ``rotation_vector``: (B,3,3) -> (B,3) float64 (one torch call for the batch: the
+    frames held at a lock change, up to revise_s seconds of them, are re-expressed at once)."""
+    return matrix_to_axis_angle(torch.from_numpy(np.ascontiguousarray(rot, dtype=np.float64))).numpy()
 
 
 def wrap_rotation_vector(aa: np.ndarray) -> np.ndarray:
@@ -676,6 +690,7 @@ class WindowedSolver:
         # when the rate is known) and the revision in progress ({"frames", "pos", "ready"})
         self._refined_ring: deque | None = None
         self._revision: dict | None = None
+        self._hops_since_revision = 0
         # bumped by every (re-)bootstrap and reset: a background upgrade of an older lock is dropped
         self._lock_generation = getattr(self, "_lock_generation", 0) + 1
         self.cancel_upgrade()  # a running upgrade belongs to the old lock
@@ -762,6 +777,7 @@ class WindowedSolver:
             passes += 1
         if passes:
             self._since_pass = 0
+            self._hops_since_revision += passes
             if self._recheck_groups and c.hop_frames < 2:  # a pass every frame: no call falls between two
                 self._recheck(self._recheck_groups.popleft())
         else:
@@ -774,9 +790,12 @@ class WindowedSolver:
         if self._revision is not None and max_passes is None:
             if not c.upgrade_in_background:
                 out += self._revise_all()  # a replay: at once, where the upgrade landed (deterministic)
-            elif (self._since_pass == max(1, (3 * c.hop_frames) // 4)) if c.hop_frames >= 4 else passes:
-                # live: one hop of revision per hop of stream (as much work as one more smoothing
-                # pass), three quarters of a hop after the pass, away from the pass and the re-check
+            elif self._hops_since_revision >= c.revise_every_hops and (
+                    (self._since_pass == max(1, (3 * c.hop_frames) // 4)) if c.hop_frames >= 4 else passes):
+                # live: one hop of revision per revise_every_hops hops of stream (a step costs about
+                # a smoothing pass), three quarters of a hop after the pass, away from the pass and
+                # the re-check
+                self._hops_since_revision = 0
                 out += self._revise_step()
         return out
 
@@ -1033,8 +1052,11 @@ class WindowedSolver:
         # and priors already attached to frames in flight carry the old one: swap it
         swap = lock[4] @ self.camera_tilt.T
         if self.has_prior and not np.allclose(swap, np.eye(3)):
-            for f in self._frames_in_flight():
-                f.prior = self._swap_prior_tilt(f.prior[None], swap)[0]
+            frames = list(self._frames_in_flight())
+            if frames:
+                priors = self._swap_prior_tilt(np.stack([f.prior for f in frames]), swap)
+                for f, prior in zip(frames, priors):
+                    f.prior = prior
         self._set_lock(lock)
         self.labels_version += 1
         self.locked = True
@@ -1052,8 +1074,14 @@ class WindowedSolver:
 
     def _reyaw_in_flight(self, old_yaw: float) -> None:
         """Re-express held frames' roots under the new yaw (their world pose is unchanged)."""
-        for f in self._frames_in_flight():
-            f.theta[:3] = self._reyaw(f.theta[:3], old_yaw, self.yaw)
+        frames = list(self._frames_in_flight())
+        if not frames or old_yaw == self.yaw:
+            return
+        up = self.up.double().numpy()
+        turn = rotation_matrices(-up * self.yaw) @ rotation_matrices(up * old_yaw)
+        roots = rotation_vectors(turn @ rotation_matrices(np.stack([f.theta[:3] for f in frames])))
+        for f, root in zip(frames, roots):
+            f.theta[:3] = root
 
     def _reyaw(self, root: np.ndarray, old: float, new: float) -> np.ndarray:
         up = self.up.double().numpy()
@@ -1674,9 +1702,8 @@ class WindowedSolver:
     @staticmethod
     def _swap_prior_tilt(prior72: np.ndarray, swap: np.ndarray) -> np.ndarray:
         out = np.array(prior72, dtype=np.float64)
-        if not np.allclose(swap, np.eye(3)):
-            for i in range(len(out)):
-                out[i, :3] = rotation_vector(swap @ rotation_matrices(out[i, :3]))
+        if not np.allclose(swap, np.eye(3)) and len(out):
+            out[:, :3] = rotation_vectors(swap @ rotation_matrices(out[:, :3]))
         return out
 
     def _recent(self, frames: int):

@@ -495,19 +495,22 @@ def test_a_lock_upgrade_revises_the_frames_refined_under_the_old_lock(streamed):
     assert after < before and mp_after < mp_before
     assert s._revision is None and not any(r.kind == "revised" for r in s.flush())
 
-    # live: the upgrade lands in the background; one hop of revised frames per hop of stream
+    # live: the upgrade lands in the background; one hop of revised frames per revise_every_hops
+    # hops of stream
     b = _mislocked_clone(streamed)
     b.config = replace(b.config, upgrade_in_background=True, **quiet)
     stream(b, 60)
     b._start_revision()
     total = len(b._revision["frames"])
-    _, calls = stream(b, 3 * b.config.hop_frames, start=60, max_passes=1)
+    hop, every = b.config.hop_frames, b.config.revise_every_hops
+    _, calls = stream(b, 3 * hop, start=60, max_passes=1)
     assert not any(r.kind == "revised" for res in calls for r in res)  # behind: none
-    _, calls = stream(b, 3 * b.config.hop_frames, start=90)
+    _, calls = stream(b, 3 * every * hop, start=90)
     per_call = [sum(r.kind == "revised" for r in res) for res in calls]
-    assert sum(1 for k in per_call if k) == 3 and max(per_call) == b.config.hop_frames, per_call
+    steps = [i for i, k in enumerate(per_call) if k]
+    assert len(steps) == 3 and max(per_call) == hop and np.all(np.diff(steps) == every * hop), per_call
     rest = [r for r in b.flush() if r.kind == "revised"]
-    assert len(rest) == total - 3 * b.config.hop_frames and b._revision is None
+    assert len(rest) == total - 3 * hop and b._revision is None
 
 
 def test_reservoir_stays_bounded_and_spread_over_a_long_take(streamed):

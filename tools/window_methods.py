@@ -145,7 +145,10 @@ def stream_solve(session_dir: Path, body_model: str | None = None, config=None, 
         res = solver.push_markers(st, md.positions[i], md.visible[i], frame_index=i)
         tp = time.perf_counter()
         take(res, tp)
-        res = solver.refine_ready()
+        # as the node: behind the capture clock (the next frame is due already), at most one smoothing
+        # pass per frame and no revision work (nodes/solver.py)
+        behind = realtime and clock0 is not None and i + 1 < T and tp > clock0 + int(stamps[i + 1]) / 1e9
+        res = solver.refine_ready(max_passes=1 if behind else None)
         t1 = time.perf_counter()
         take(res, t1)
         if locked:
