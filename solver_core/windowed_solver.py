@@ -1077,15 +1077,14 @@ class WindowedSolver:
         frames = list(self._frames_in_flight())
         if not frames or old_yaw == self.yaw:
             return
-        up = self.up.double().numpy()
-        turn = rotation_matrices(-up * self.yaw) @ rotation_matrices(up * old_yaw)
-        roots = rotation_vectors(turn @ rotation_matrices(np.stack([f.theta[:3] for f in frames])))
+        roots = self._reyaw(np.stack([f.theta[:3] for f in frames]), old_yaw, self.yaw)
         for f, root in zip(frames, roots):
             f.theta[:3] = root
 
-    def _reyaw(self, root: np.ndarray, old: float, new: float) -> np.ndarray:
+    def _reyaw(self, roots: np.ndarray, old: float, new: float) -> np.ndarray:
+        """Roots (B,3) under yaw ``old`` -> the same world rotations under yaw ``new`` (one batched call)."""
         up = self.up.double().numpy()
-        return rotation_vector(rotation_matrices(-up * new) @ rotation_matrices(up * old) @ rotation_matrices(root))
+        return rotation_vectors(rotation_matrices(-up * new) @ rotation_matrices(up * old) @ rotation_matrices(roots))
 
     def _attachment(self) -> MarkerAttachment:
         return MarkerAttachment(torch.as_tensor(self.face_ids), torch.as_tensor(self.bary, dtype=torch.float32),
@@ -1671,7 +1670,7 @@ class WindowedSolver:
         self._set_lock(new)
         # same world poses and priors, expressed under the candidate's yaw and camera tilt
         theta_new = theta.copy()
-        theta_new[:, :3] = np.stack([self._reyaw(r, old[3], self.yaw) for r in theta[:, :3]])
+        theta_new[:, :3] = self._reyaw(theta[:, :3], old[3], self.yaw)
         prior_new = self._swap_prior_tilt(prior, new[4] @ old[4].T)
         candidate = self._reservoir_fit(job, theta_new, trans, prior_new)
         self.stats.setdefault("upgrade_fit_mm", []).append((round(1000 * current, 2), round(1000 * candidate, 2)))
