@@ -72,19 +72,23 @@ def _init_worker(model, chamfer_model, cancelled_upto, parent_pid) -> None:
     torch.set_num_threads(1)  # one core per solve: the caller uses the other
     threadpool_limits(1, user_api="blas")
     preload_lazy_imports()
-    _worker_state.update(model=model, chamfer_model=chamfer_model, cancelled_upto=cancelled_upto)
+    _worker_state.update(model=model, chamfer_model=chamfer_model, cancelled_upto=cancelled_upto, cache={})
 
 
 def _ready() -> int:
     return os.getpid() if _worker_state else 0
 
 
-def _run_solve(job_id: int, markers, visible, rate_hz, up_axis, prior, shape, config):
+def _run_solve(job_id: int, markers, visible, rate_hz, up_axis, prior, shape, config, after=None):
     from uuomocap.solver_core.staged_solver import solve
 
     s = _worker_state
-    return solve(markers, visible, rate_hz, up_axis, prior, shape, s["model"], s["chamfer_model"], config,
-                 progress=_CancelledBelow(job_id, s["cancelled_upto"]))
+    res = solve(markers, visible, rate_hz, up_axis, prior, shape, s["model"], s["chamfer_model"], config,
+                progress=_CancelledBelow(job_id, s["cancelled_upto"]))
+    if after is None:
+        return res
+    fn, args = after
+    return res, fn(res, s, *args)
 
 
 class StagedSolveWorker:
@@ -116,12 +120,18 @@ class StagedSolveWorker:
             self.broken = True
             return False
 
-    def submit(self, markers, visible, rate_hz, up_axis, prior, shape, config) -> tuple[int, Future]:
+    def submit(self, markers, visible, rate_hz, up_axis, prior, shape, config, after=None) -> tuple[int, Future]:
         """(job id, Future of the SolveResult).  A worker that died or could not start gives a
-        Future holding ``BrokenExecutor`` (and ``broken`` is True from then on)."""
+        Future holding ``BrokenExecutor`` (and ``broken`` is True from then on).
+
+        after: optional (function, args) run in the worker on the result, as
+        ``function(result, worker_state, *args)`` (worker_state: the models and a ``cache`` dict
+        that lives as long as the worker); the Future then holds (result, its return value).
+        The function must be importable by name (it travels as a reference)."""
         self._next_id += 1
         try:
-            return self._next_id, self._pool.submit(_run_solve, self._next_id, markers, visible, rate_hz, up_axis, prior, shape, config)
+            return self._next_id, self._pool.submit(_run_solve, self._next_id, markers, visible, rate_hz, up_axis, prior, shape,
+                                                    config, after)
         except BrokenExecutor as exc:
             self.broken = True
             failed: Future = Future()

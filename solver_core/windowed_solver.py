@@ -34,6 +34,7 @@ config and the rate, nothing grows with the take.
 
 from __future__ import annotations
 
+import copy
 import math
 import threading
 import time
@@ -1573,8 +1574,13 @@ class WindowedSolver:
         if self._worker is not None and self._worker.broken:
             self._drop_broken_worker()
         if c.upgrade_in_background and self._worker is not None:
+            # the worker also judges the result against the current lock (two re-solves of the
+            # reservoir, ~0.5 s that stalled the stream when run here at adoption)
+            # (copies: the job is pickled on the pool's feeder thread, re-assignments edit in place)
+            old = tuple(copy.deepcopy(getattr(self, name)) for name in self._LOCK_FIELDS)
+            check = (compare_upgrade_locks, (self.config, self.up_axis, self.rate_hz, old, self._reservoir_poses(job)))
             job["worker_job"], future = self._worker.submit(job["markers"], job["visible"], self.rate_hz or 120.0, self.up_axis,
-                                                            job["prior"], job["shape"], self._upgrade_config(job))
+                                                            job["prior"], job["shape"], self._upgrade_config(job), after=check)
             self._upgrade_job = (future, job)
             return
         if c.upgrade_in_background:
@@ -1601,7 +1607,10 @@ class WindowedSolver:
                 self.stats["upgrade_errors"] = self.stats.get("upgrade_errors", 0) + 1
                 self.stats["last_upgrade_error"] = str(exc)
                 return
-            self._finish_upgrade(res, job)
+            fits = None
+            if "worker_job" in job:
+                res, fits = res
+            self._finish_upgrade(res, job, fits)
 
     def _upgrade_inputs(self) -> dict:
         """Copies of everything the upgrade solve reads (the stream goes on while it runs)."""
@@ -1614,7 +1623,8 @@ class WindowedSolver:
                           "world")
         return {"markers": np.stack([f.markers for f in frames]), "visible": np.stack([f.visible for f in frames]),
                 "prior": prior, "shape": shape,
-                "generation": self._lock_generation, "cancel": threading.Event(), "t0": time.perf_counter(),
+                "generation": self._lock_generation, "labels_version": self.labels_version,
+                "cancel": threading.Event(), "t0": time.perf_counter(),
                 "stride": self._reservoir_stride,
                 "frames": frames}
 
@@ -1638,12 +1648,14 @@ class WindowedSolver:
                        pose_fitting=replace(base.pose_fitting, smoothness_weight=0.0),
                        screening_frames=screening, chamfer_frames=n)
 
-    def _finish_upgrade(self, res, job: dict) -> None:
+    def _finish_upgrade(self, res, job: dict, fits: tuple[float, float] | None = None) -> None:
         """Adopt the upgrade's shape, yaw, tilt and correspondence when it explains the reservoir's
         markers better than the current lock, both judged the same way: the reservoir frames
-        re-solved per frame under each lock (``_reservoir_fit``).  Comparing the staged solver's
+        re-solved per frame under each lock (``_compare_locks``).  Comparing the staged solver's
         own fit with the refined frames' residuals instead adopted worse locks (those frames were
         fitted to the current lock; the solver's budgets are short) and refused better ones.
+        fits: (current, candidate) as the worker process judged them under the lock the upgrade
+        started from; used while that is still the lock (else judged here).
         Dropped when the lock changed meanwhile (a re-bootstrap)."""
         c = self.config
         self.stats["upgrades"] = self.stats.get("upgrades", 0) + 1
@@ -1661,20 +1673,12 @@ class WindowedSolver:
             self.stats["upgrades_rejected"] = self.stats.get("upgrades_rejected", 0) + 1
             self.stats["upgrades_other_part"] = self.stats.get("upgrades_other_part", 0) + 1
             return
-        frames = job["frames"]
-        theta = np.stack([f.theta for f in frames])
-        trans = np.stack([f.trans for f in frames])
-        prior = np.stack([f.prior for f in frames])
-        current = self._reservoir_fit(job, theta, trans, prior)
-        old = tuple(getattr(self, name) for name in self._LOCK_FIELDS)
-        self._set_lock(new)
-        # same world poses and priors, expressed under the candidate's yaw and camera tilt
-        theta_new = theta.copy()
-        theta_new[:, :3] = self._reyaw(theta[:, :3], old[3], self.yaw)
-        prior_new = self._swap_prior_tilt(prior, new[4] @ old[4].T)
-        candidate = self._reservoir_fit(job, theta_new, trans, prior_new)
+        if fits is not None and job["labels_version"] == self.labels_version:
+            current, candidate = fits
+            self.stats["upgrade_checks_in_worker"] = self.stats.get("upgrade_checks_in_worker", 0) + 1
+        else:  # judged here: no worker, or markers were re-assigned while it ran
+            current, candidate = self._compare_locks(new, self._reservoir_poses(job))
         self.stats.setdefault("upgrade_fit_mm", []).append((round(1000 * current, 2), round(1000 * candidate, 2)))
-        self._set_lock(old)
         if not candidate < c.upgrade_accept_ratio * current:
             self.stats["upgrades_rejected"] = self.stats.get("upgrades_rejected", 0) + 1
             return
@@ -1690,12 +1694,37 @@ class WindowedSolver:
             return a is None and b is None
         return np.array_equal(np.sort(np.asarray(a)), np.sort(np.asarray(b)))
 
-    def _reservoir_fit(self, job: dict, theta: np.ndarray, trans: np.ndarray, prior: np.ndarray) -> float:
+    def _reservoir_poses(self, job: dict) -> dict:
+        """The upgrade's reservoir frames as the lock check reads them: markers (R,M,3), visible
+        (R,M), their refined theta (R,72), trans (R,3) and priors (R,72) under the current lock."""
+        frames = job["frames"]
+        return {"markers": job["markers"], "visible": job["visible"], "theta": np.stack([f.theta for f in frames]),
+                "trans": np.stack([f.trans for f in frames]), "prior": np.stack([f.prior for f in frames])}
+
+    def _compare_locks(self, new: tuple, reservoir: dict) -> tuple[float, float]:
+        """(current, candidate): mean marker residual (metres) of the reservoir frames
+        (``_reservoir_poses``) re-solved per frame under the current lock and under the lock
+        ``new``, from the same world poses and priors expressed under each lock's yaw and camera
+        tilt.  The current lock stays in place."""
+        theta, trans, prior = reservoir["theta"], reservoir["trans"], reservoir["prior"]
+        current = self._reservoir_fit(reservoir, theta, trans, prior)
+        old = tuple(getattr(self, name) for name in self._LOCK_FIELDS)
+        self._set_lock(new)
+        try:
+            theta_new = theta.copy()
+            theta_new[:, :3] = self._reyaw(theta[:, :3], old[3], self.yaw)
+            prior_new = self._swap_prior_tilt(prior, new[4] @ old[4].T)
+            candidate = self._reservoir_fit(reservoir, theta_new, trans, prior_new)
+        finally:
+            self._set_lock(old)
+        return current, candidate
+
+    def _reservoir_fit(self, reservoir: dict, theta: np.ndarray, trans: np.ndarray, prior: np.ndarray) -> float:
         """Mean marker residual (metres) of the reservoir frames re-solved per frame under the
         current lock, from the given start (the same estimator the stream uses)."""
-        theta, trans = self._gauss_newton(theta, trans, job["markers"], job["visible"], prior,
+        theta, trans = self._gauss_newton(theta, trans, reservoir["markers"], reservoir["visible"], prior,
                                           self.config.upgrade_check_iterations)
-        lin = self._linearize(theta, trans, job["markers"], job["visible"], jacobian=False)
+        lin = self._linearize(theta, trans, reservoir["markers"], reservoir["visible"], jacobian=False)
         return float(np.mean(lin["residual"]))
 
     @staticmethod
@@ -1778,3 +1807,20 @@ class WindowedSolver:
             self.stats["reassigned"] += int(better.sum())
             self.labels_version += 1
             self._prepare_lock()
+
+
+def compare_upgrade_locks(res, worker_state: dict, config: WindowedSolverConfig, up_axis: str, rate_hz: float | None,
+                          lock: tuple, reservoir: dict) -> tuple[float, float]:
+    """Run in the solve worker after a lock upgrade's staged solve (``StagedSolveWorker.submit``'s
+    ``after``): ``WindowedSolver._compare_locks`` of the result's lock against ``lock``, the lock
+    the upgrade started from, on the reservoir frames.  The stream's process then only adopts.
+    A lock-free solver on the same models and config is kept in the worker's cache."""
+    key = (config, up_axis, rate_hz)
+    cached = worker_state["cache"].get("lock_checker")
+    if cached is None or cached[0] != key:
+        solver = WindowedSolver(worker_state["model"], replace(config, worker_process=False), up_axis, rate_hz,
+                                worker_state["chamfer_model"])
+        cached = worker_state["cache"]["lock_checker"] = (key, solver)
+    solver = cached[1]
+    solver._set_lock(lock)
+    return solver._compare_locks(solver._lock_from(res), reservoir)

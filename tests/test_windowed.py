@@ -433,9 +433,31 @@ def test_lock_upgrade_on_the_reservoir_repairs_a_wrong_lock(streamed):
     e._upgrade_lock()
     assert e._upgrade_job is not None and "worker_job" in e._upgrade_job[1]
     e._upgrade_job[0].result(timeout=300)
+
+    def judged_here(*args):
+        raise AssertionError("the worker judged this upgrade: no reservoir re-solve in the stream's process")
+
+    e._reservoir_fit = judged_here
     e._poll_upgrade()
     assert e.labels_version == version + 1 and "worker_failed" not in e.stats
     np.testing.assert_array_equal(e.face_ids, upgraded_faces)
+    # the worker's judgement of the two locks is the one this process makes (thread path, b)
+    assert e.stats["upgrade_checks_in_worker"] == 1
+    np.testing.assert_allclose(e.stats["upgrade_fit_mm"], b.stats["upgrade_fit_mm"], atol=0.02)
+    # a marker re-assigned (here: dropped) while the upgrade ran: the current lock is no longer
+    # the one the worker judged against, so it is judged here, under the lock as it is now
+    g = _mislocked_clone(streamed)
+    g.config = replace(g.config, upgrade_in_background=True)
+    g._worker = worker
+    g._upgrade_lock()
+    g._unassign(np.array([int(np.flatnonzero(g.face_ids >= 0)[0])]))
+    g._upgrade_job[0].result(timeout=300)
+    g._poll_upgrade()
+    assert "upgrade_checks_in_worker" not in g.stats and g.stats["upgrades"] == 1
+    current, candidate = g.stats["upgrade_fit_mm"][0]
+    assert candidate < current and g.labels_version == version + 2
+    np.testing.assert_array_equal(g.face_ids, upgraded_faces)
+    g._worker = None  # f closes the shared worker
     f = _mislocked_clone(streamed)
     f.config = replace(f.config, upgrade_in_background=True)
     f._worker = worker
