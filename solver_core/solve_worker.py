@@ -30,21 +30,26 @@ class SolveCancelled(RuntimeError):
     """The job was cancelled while it ran (its result is no longer wanted)."""
 
 
+# Ids of jobs cancelled one by one, in slots by id modulo this (a job is cancelled when its slot
+# holds its id; far more slots than jobs ever queue at once).
+_CANCEL_SLOTS = 64
+
+
 class _CancelledBelow(SolverProgress):
-    """Raises ``SolveCancelled`` once the caller has cancelled every job up to this one's id."""
+    """Raises ``SolveCancelled`` once the caller cancelled this job, or every job up to its id."""
 
-    def __init__(self, job_id: int, cancelled_upto):
-        self.job_id, self.cancelled_upto = job_id, cancelled_upto
+    def __init__(self, job_id: int, cancelled_upto, cancelled_ids):
+        self.job_id, self.cancelled_upto, self.cancelled_ids = job_id, cancelled_upto, cancelled_ids
 
-    def _check(self) -> None:
-        if self.cancelled_upto.value >= self.job_id:
-            raise SolveCancelled(f"staged solve #{self.job_id} cancelled")
+    def check(self) -> None:
+        if self.cancelled_upto.value >= self.job_id or self.cancelled_ids[self.job_id % _CANCEL_SLOTS] == self.job_id:
+            raise SolveCancelled(f"worker job #{self.job_id} cancelled")
 
     def stage_start(self, name: str, detail: str = "") -> None:
-        self._check()
+        self.check()
 
     def stage_step(self, name: str, iterations: int, loss: float) -> None:
-        self._check()
+        self.check()
 
 
 # The worker process's state, set once by its initializer (per child process; the parent never
@@ -62,7 +67,7 @@ def _exit_with_parent(parent_pid: int, period_s: float = 1.0) -> None:
             os._exit(0)
 
 
-def _init_worker(model, chamfer_model, cancelled_upto, parent_pid) -> None:
+def _init_worker(model, chamfer_model, cancelled_upto, cancelled_ids, parent_pid) -> None:
     threading.Thread(target=_exit_with_parent, args=(parent_pid,), name="exit-with-parent", daemon=True).start()
     import torch
     from threadpoolctl import threadpool_limits
@@ -72,7 +77,8 @@ def _init_worker(model, chamfer_model, cancelled_upto, parent_pid) -> None:
     torch.set_num_threads(1)  # one core per solve: the caller uses the other
     threadpool_limits(1, user_api="blas")
     preload_lazy_imports()
-    _worker_state.update(model=model, chamfer_model=chamfer_model, cancelled_upto=cancelled_upto, cache={})
+    _worker_state.update(model=model, chamfer_model=chamfer_model, cancelled_upto=cancelled_upto, cancelled_ids=cancelled_ids,
+                         cache={})
 
 
 def _ready() -> int:
@@ -84,11 +90,16 @@ def _run_solve(job_id: int, markers, visible, rate_hz, up_axis, prior, shape, co
 
     s = _worker_state
     res = solve(markers, visible, rate_hz, up_axis, prior, shape, s["model"], s["chamfer_model"], config,
-                progress=_CancelledBelow(job_id, s["cancelled_upto"]))
+                progress=_CancelledBelow(job_id, s["cancelled_upto"], s["cancelled_ids"]))
     if after is None:
         return res
     fn, args = after
     return res, fn(res, s, *args)
+
+
+def _run_call(job_id: int, fn, args):
+    s = _worker_state
+    return fn(s, _CancelledBelow(job_id, s["cancelled_upto"], s["cancelled_ids"]).check, *args)
 
 
 class StagedSolveWorker:
@@ -102,10 +113,11 @@ class StagedSolveWorker:
     def __init__(self, model, chamfer_model=None):
         ctx = mp.get_context("spawn")
         self._cancelled_upto = ctx.Value("q", 0, lock=False)
+        self._cancelled_ids = ctx.Array("q", _CANCEL_SLOTS, lock=False)
         self._next_id = 0
         self.broken = False
         self._pool = ProcessPoolExecutor(1, mp_context=ctx, initializer=_init_worker,
-                                         initargs=(model, chamfer_model or model, self._cancelled_upto, os.getpid()))
+                                         initargs=(model, chamfer_model or model, self._cancelled_upto, self._cancelled_ids, os.getpid()))
         self.pid: int | None = None  # the worker's process id, once ready
         self._warm = self._pool.submit(_ready)  # starts the process and its imports now
 
@@ -137,6 +149,24 @@ class StagedSolveWorker:
             failed: Future = Future()
             failed.set_exception(exc)
             return self._next_id, failed
+
+    def call(self, fn, *args) -> tuple[int, Future]:
+        """(job id, Future of ``fn(worker_state, check, *args)``) run in the worker after the jobs
+        before it: worker_state holds the models and a ``cache`` dict that lives as long as the
+        worker; ``check()`` raises ``SolveCancelled`` once the job is cancelled (call it often).
+        fn must be importable by name.  A dead worker gives a Future holding ``BrokenExecutor``."""
+        self._next_id += 1
+        try:
+            return self._next_id, self._pool.submit(_run_call, self._next_id, fn, args)
+        except BrokenExecutor as exc:
+            self.broken = True
+            failed: Future = Future()
+            failed.set_exception(exc)
+            return self._next_id, failed
+
+    def cancel(self, job_id: int) -> None:
+        """Cancel this one job (the jobs before and after it go on)."""
+        self._cancelled_ids[int(job_id) % _CANCEL_SLOTS] = int(job_id)
 
     def cancel_upto(self, job_id: int) -> None:
         self._cancelled_upto.value = max(self._cancelled_upto.value, int(job_id))

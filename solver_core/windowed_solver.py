@@ -332,13 +332,18 @@ class WindowedSolverConfig:
     # Gauss-Newton iterations of a revised frame's estimate under the new lock (its refined pose
     # under the old lock is the start).
     revise_iterations: int = 4
-    # Live (upgrade_in_background): one hop of revision every this many hops of stream.  A step
-    # costs a bit more than a smoothing pass (~30 ms for 10 frames here) and stalls the frames
-    # arriving meanwhile.  Session 21, 120 Hz walk, 40 markers, on the capture clock, per second
-    # while revising: one step every hop put the solver over its capacity (estimate p95 15 -> 540
-    # ms), every third hop 26-44 ms, every sixth 17-29 ms (without revisions 16-19 ms); a sixth
-    # revises 20 frames per second of stream, the rest when the take ends (flush).
+    # Live (upgrade_in_background) without a worker process (worker_process False): one hop of
+    # revision every this many hops of stream.  A step costs a bit more than a smoothing pass (~30
+    # ms for 10 frames here) and stalls the frames arriving meanwhile.  Session 21, 120 Hz walk, 40
+    # markers, on the capture clock, per second while revising: one step every hop put the solver
+    # over its capacity (estimate p95 15 -> 540 ms), every third hop 26-44 ms, every sixth 17-29 ms
+    # (without revisions 16-19 ms); a sixth revises 20 frames per second of stream, the rest when
+    # the take ends (flush).  With the worker process (the default) the whole revision runs there,
+    # in one job ahead of the next upgrade (~0.1 s of its core per second of ring).
     revise_every_hops: int = 6
+    # Revised frames handed out per ``refine_ready`` call once the worker's revision is back (they
+    # come back all at once; a caller publishes each).
+    revise_emit_frames: int = 60
     # Ring sizes: recent frames kept for re-assignment (frames), priors kept (messages).
     history_frames: int = 64
     prior_buffer: int = 512
@@ -404,6 +409,19 @@ class _Frame:
         self.prior_weight = 1.0
         self.residual = math.nan
         self.joints = None
+
+    # what a revision reads of a refined frame
+    REVISED_FROM = ("stamp", "index", "markers", "visible", "theta", "trans", "prior")
+
+    @classmethod
+    def from_arrays(cls, arrays: dict) -> list["_Frame"]:
+        """Frames from ``REVISED_FROM`` arrays stacked over frames."""
+        frames = []
+        for i in range(len(arrays["stamp"])):
+            f = cls(arrays["stamp"][i], arrays["index"][i], arrays["markers"][i], arrays["visible"][i])
+            f.theta, f.trans, f.prior = arrays["theta"][i].copy(), arrays["trans"][i].copy(), arrays["prior"][i]
+            frames.append(f)
+        return frames
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -690,7 +708,7 @@ class WindowedSolver:
         # refined frames a lock upgrade may revise (the last revise_s seconds; made at the bootstrap,
         # when the rate is known) and the revision in progress ({"frames", "pos", "ready"})
         self._refined_ring: deque | None = None
-        self._revision: dict | None = None
+        self._cancel_revision()
         self._hops_since_revision = 0
         # bumped by every (re-)bootstrap and reset: a background upgrade of an older lock is dropped
         self._lock_generation = getattr(self, "_lock_generation", 0) + 1
@@ -788,7 +806,10 @@ class WindowedSolver:
                 # worked off and the next pass is half a hop away (right after the pass, the two
                 # stalls added up for the frames arriving meanwhile)
                 self._recheck(self._recheck_groups.popleft())
-        if self._revision is not None and max_passes is None:
+        if self._revision is not None and "future" in self._revision:
+            if max_passes is None:
+                out += self._worker_revision(wait=False, limit=c.revise_emit_frames)
+        elif self._revision is not None and max_passes is None:
             if not c.upgrade_in_background:
                 out += self._revise_all()  # a replay: at once, where the upgrade landed (deterministic)
             elif self._hops_since_revision >= c.revise_every_hops and (
@@ -803,6 +824,9 @@ class WindowedSolver:
     def flush(self) -> list[WindowResult]:
         """End of stream: bootstrap on what is there if never locked, then finalise every frame."""
         out: list[WindowResult] = []
+        if self._revision is not None and "future" in self._revision:
+            # the worker runs it ahead of any upgrade queued after it: wait for it, then cancel that
+            out += self._worker_revision(wait=True)
         self.cancel_upgrade()  # its lock could only serve frames that are final now
         if not self.locked and self._boot:
             out += self._bootstrap(list(self._boot), rebootstrap=False)
@@ -816,6 +840,8 @@ class WindowedSolver:
         copy runs its extra bootstrap starts and upgrades on threads."""
         state = dict(self.__dict__)
         state["_worker"], state["_executor"], state["_upgrade_job"] = None, None, None
+        if state.get("_revision") is not None and "future" in state["_revision"]:
+            state["_revision"] = self._revision_here(state["_revision"])
         return state
 
     def _drop_broken_worker(self) -> None:
@@ -830,7 +856,14 @@ class WindowedSolver:
         if job is not None:
             job[1]["cancel"].set()
             if "worker_job" in job[1]:
-                self._worker.cancel_upto(job[1]["worker_job"])
+                self._worker.cancel(job[1]["worker_job"])
+
+    def _cancel_revision(self) -> None:
+        """Drop the revision in progress (and stop it in the worker process)."""
+        rev = getattr(self, "_revision", None)
+        if rev is not None and "worker_job" in rev and self._worker is not None:
+            self._worker.cancel(rev["worker_job"])
+        self._revision = None
 
     def end_upgrades(self) -> None:
         """The take is ending (a live stop): cancel a running lock upgrade and start no more - a
@@ -842,6 +875,8 @@ class WindowedSolver:
     def close(self) -> None:
         """Cancel a running upgrade and release the worker thread (the solver stays usable)."""
         self.cancel_upgrade()
+        if self._revision is not None and "future" in self._revision:
+            self._revision = self._revision_here(self._revision)  # flush finishes it here
         if self._executor is not None:
             self._executor.shutdown(wait=False)
             self._executor = None
@@ -926,7 +961,7 @@ class WindowedSolver:
         # a (re-)bootstrap starts over: frames before it may be another subject's, or a failed fit's
         ring = int(round(c.revise_s * rate))
         self._refined_ring = deque(maxlen=ring) if ring > 0 else None
-        self._revision = None
+        self._cancel_revision()
         self._locked_span = len(frames)
         self._lock_generation += 1
         self.has_prior = has_prior
@@ -1003,6 +1038,7 @@ class WindowedSolver:
 
         if self._worker is not None:
             self.cancel_upgrade()  # the upgrade of an older lock would queue ahead of these
+            self._cancel_revision()
             outcomes = collect([self._worker.submit(markers, vis, rate_hz, self.up_axis, prior, shape, cfg)[1] for cfg in configs[1:]])
             if self._worker.broken or any(isinstance(o, BrokenExecutor) for o in outcomes):
                 # it could not start (e.g. a script that starts solving at import time, which a
@@ -1299,7 +1335,8 @@ class WindowedSolver:
         return self._result(frame, "estimate", lin["root_world"][0])
 
     def _result(self, f: _Frame, kind: str, root_world: np.ndarray) -> WindowResult:
-        root = rotation_vector(root_world)
+        """The result of frame f; root_world: its world root rotation, a matrix (3,3) or a rotation vector (3,)."""
+        root = rotation_vector(root_world) if np.shape(root_world) == (3, 3) else np.asarray(root_world, dtype=np.float64)
         return WindowResult(f.stamp, f.index, kind, np.concatenate([root, f.theta[3:]]), f.trans.copy(),
                             f.joints.copy(), self.betas.double().numpy().copy(), float(f.residual), self.labels_version)
 
@@ -1358,11 +1395,56 @@ class WindowedSolver:
 
     # ------------------------------------------------------------------ revisions after a lock upgrade
     def _start_revision(self) -> None:
-        """Queue every frame refined under the previous lock (the ring) for a revision under this one."""
+        """Queue every frame refined under the previous lock (the ring) for a revision under this
+        one: live with the worker process, the whole revision as one job there; else hop by hop here."""
+        self._cancel_revision()
         if not self._refined_ring:
             return
-        self._revision = {"frames": list(self._refined_ring), "pos": 0, "ready": 0}
+        frames = list(self._refined_ring)
+        self._revision = {"frames": frames, "pos": 0, "ready": 0}
         self.stats["revisions"] = self.stats.get("revisions", 0) + 1
+        if self.config.upgrade_in_background and self._worker is not None and not self._worker.broken:
+            lock = tuple(copy.deepcopy(getattr(self, name)) for name in self._LOCK_FIELDS)
+            # stacked arrays: the pool pickles the job on a thread holding the interpreter lock, and
+            # 3600 frame objects (30 s at 120 Hz) stalled the stream ~170 ms there
+            arrays = {name: np.stack([getattr(f, name) for f in frames]) for name in _Frame.REVISED_FROM}
+            job, future = self._worker.call(revise_in_worker, self.config, self.up_axis, self.rate_hz, lock, arrays)
+            self._revision.update(future=future, worker_job=job)
+
+    @staticmethod
+    def _revision_here(rev: dict) -> dict:
+        """A worker's revision, continued in this process from the frames it has handed out."""
+        return {"frames": rev["frames"], "pos": rev["pos"], "ready": rev["pos"]}
+
+    def _worker_revision(self, wait: bool, limit: int | None = None) -> list[WindowResult]:
+        """The worker's revision: once back, its poses go into the ring's frames and up to ``limit``
+        'revised' results per call come out.  Failed or cancelled there: revised here instead, hop by
+        hop (``_revise_step``); a lock adopted since: dropped (the new lock's revision covers them)."""
+        rev = self._revision
+        if "poses" not in rev:
+            if not (wait or rev["future"].done()):
+                return []
+            try:
+                rev["poses"] = rev["future"].result()
+            except (SolveCancelled, ValueError, RuntimeError) as exc:
+                if isinstance(exc, BrokenExecutor):
+                    self._drop_broken_worker()
+                self.stats["revision_errors"] = self.stats.get("revision_errors", 0) + 1
+                self._revision = self._revision_here(rev)
+                return []
+            rev["pos"] = 0
+        poses, frames, a = rev["poses"], rev["frames"], rev["pos"]
+        end = len(frames) if limit is None else min(len(frames), a + limit)
+        out = []
+        for i in range(a, end):
+            f = frames[i]
+            f.theta, f.trans, f.joints, f.residual = poses["theta"][i], poses["trans"][i], poses["joints"][i], float(poses["residual"][i])
+            out.append(self._result(f, "revised", poses["root"][i]))
+        rev["pos"] = end
+        if end >= len(frames):
+            self._revision = None
+        self.stats["revised_frames"] = self.stats.get("revised_frames", 0) + len(out)
+        return out
 
     def _revise_step(self) -> list[WindowResult]:
         """One hop of the revision in progress, as the stream does it: the frames entering the
@@ -1815,12 +1897,37 @@ def compare_upgrade_locks(res, worker_state: dict, config: WindowedSolverConfig,
     ``after``): ``WindowedSolver._compare_locks`` of the result's lock against ``lock``, the lock
     the upgrade started from, on the reservoir frames.  The stream's process then only adopts.
     A lock-free solver on the same models and config is kept in the worker's cache."""
+    solver = _lock_free_solver(worker_state, config, up_axis, rate_hz)
+    solver._set_lock(lock)
+    return solver._compare_locks(solver._lock_from(res), reservoir)
+
+
+def revise_in_worker(worker_state: dict, check, config: WindowedSolverConfig, up_axis: str, rate_hz: float | None,
+                     lock: tuple, arrays: dict) -> dict:
+    """Run in the solve worker (``StagedSolveWorker.call``) after a lock upgrade was adopted: the
+    revision of the frames in ``arrays`` (``_Frame.REVISED_FROM`` stacked; refined under the old
+    lock, in capture order) under ``lock``, hop by hop as ``WindowedSolver._revise_step`` does it.  Returns per frame theta (N,72) and trans (N,3)
+    under the lock, joints (N,24,3), residual (N,) and the world root rotation vector root (N,3)."""
+    solver = _lock_free_solver(worker_state, config, up_axis, rate_hz)
+    solver._set_lock(lock)
+    frames = _Frame.from_arrays(arrays)
+    solver._revision = {"frames": frames, "pos": 0, "ready": 0}
+    results: list[WindowResult] = []
+    while solver._revision is not None:
+        check()  # cancelled: a re-bootstrap or a newer lock
+        results += solver._revise_step()
+    return {"theta": np.stack([f.theta for f in frames]), "trans": np.stack([f.trans for f in frames]),
+            "joints": np.stack([f.joints for f in frames]), "residual": np.array([f.residual for f in frames]),
+            "root": np.stack([r.poses[:3] for r in results])}
+
+
+def _lock_free_solver(worker_state: dict, config: WindowedSolverConfig, up_axis: str, rate_hz: float | None) -> "WindowedSolver":
+    """A solver on the worker's models and this config without a stream (the worker jobs set its
+    lock), kept in the worker's cache while the config stays the same."""
     key = (config, up_axis, rate_hz)
-    cached = worker_state["cache"].get("lock_checker")
+    cached = worker_state["cache"].get("lock_free_solver")
     if cached is None or cached[0] != key:
         solver = WindowedSolver(worker_state["model"], replace(config, worker_process=False), up_axis, rate_hz,
                                 worker_state["chamfer_model"])
-        cached = worker_state["cache"]["lock_checker"] = (key, solver)
-    solver = cached[1]
-    solver._set_lock(lock)
-    return solver._compare_locks(solver._lock_from(res), reservoir)
+        cached = worker_state["cache"]["lock_free_solver"] = (key, solver)
+    return cached[1]

@@ -534,6 +534,37 @@ def test_a_lock_upgrade_revises_the_frames_refined_under_the_old_lock(streamed):
     rest = [r for r in b.flush() if r.kind == "revised"]
     assert len(rest) == total - 3 * hop and b._revision is None
 
+    # live with the worker process (the default): the whole revision runs there as one job; once
+    # back it comes out revise_emit_frames per call (none while behind), the poses the same as
+    # revised here; flush hands out the rest
+    from uuomocap.solver_core.solve_worker import StagedSolveWorker
+
+    w = _mislocked_clone(streamed)
+    w.config = replace(w.config, upgrade_in_background=True, revise_emit_frames=7, **quiet)
+    stream(w, 60)
+    here = copy.deepcopy(w)
+    here.config = replace(here.config, upgrade_in_background=False)
+    here._start_revision()
+    expected = {r.frame_index: r for r in here._revise_all()}
+    w._worker = StagedSolveWorker(streamed["model"], streamed["chamfer"])
+    try:
+        w._start_revision()
+        assert "future" in w._revision
+        w._revision["future"].result(timeout=120)
+        _, calls = stream(w, 2, start=60, max_passes=1)
+        assert not any(r.kind == "revised" for res in calls for r in res)  # behind: none
+        _, calls = stream(w, 3, start=62)
+        per_call = [[r for r in res if r.kind == "revised"] for res in calls]
+        assert [len(x) for x in per_call] == [7, 7, 7]
+        got = [r for x in per_call for r in x] + [r for r in w.flush() if r.kind == "revised"]
+        assert [r.frame_index for r in got] == list(expected) and w._revision is None
+        for r in got:
+            np.testing.assert_allclose(r.poses, expected[r.frame_index].poses, atol=1e-6)
+            np.testing.assert_allclose(r.joints, expected[r.frame_index].joints, atol=1e-6)
+            assert r.residual_m == pytest.approx(expected[r.frame_index].residual_m, abs=1e-7)
+    finally:
+        w.close()
+
 
 def test_reservoir_stays_bounded_and_spread_over_a_long_take(streamed):
     from uuomocap.solver_core.windowed_solver import _Frame
