@@ -1404,7 +1404,7 @@ class WindowedSolver:
         self._revision = {"frames": frames, "pos": 0, "ready": 0}
         self.stats["revisions"] = self.stats.get("revisions", 0) + 1
         if self.config.upgrade_in_background and self._worker is not None and not self._worker.broken:
-            lock = tuple(copy.deepcopy(getattr(self, name)) for name in self._LOCK_FIELDS)
+            lock = self._lock_copy()
             # stacked arrays: the pool pickles the job on a thread holding the interpreter lock, and
             # 3600 frame objects (30 s at 120 Hz) stalled the stream ~170 ms there
             arrays = {name: np.stack([getattr(f, name) for f in frames]) for name in _Frame.REVISED_FROM}
@@ -1419,7 +1419,7 @@ class WindowedSolver:
     def _worker_revision(self, wait: bool, limit: int | None = None) -> list[WindowResult]:
         """The worker's revision: once back, its poses go into the ring's frames and up to ``limit``
         'revised' results per call come out.  Failed or cancelled there: revised here instead, hop by
-        hop (``_revise_step``); a lock adopted since: dropped (the new lock's revision covers them)."""
+        hop (``_revise_step``).  (A lock adopted meanwhile replaces the revision: ``_start_revision``.)"""
         rev = self._revision
         if "poses" not in rev:
             if not (wait or rev["future"].done()):
@@ -1427,7 +1427,7 @@ class WindowedSolver:
             try:
                 rev["poses"] = rev["future"].result()
             except (SolveCancelled, ValueError, RuntimeError) as exc:
-                if isinstance(exc, BrokenExecutor):
+                if isinstance(exc, BrokenExecutor) and self._worker is not None:
                     self._drop_broken_worker()
                 self.stats["revision_errors"] = self.stats.get("revision_errors", 0) + 1
                 self._revision = self._revision_here(rev)
@@ -1658,9 +1658,7 @@ class WindowedSolver:
         if c.upgrade_in_background and self._worker is not None:
             # the worker also judges the result against the current lock (two re-solves of the
             # reservoir, ~0.5 s that stalled the stream when run here at adoption)
-            # (copies: the job is pickled on the pool's feeder thread, re-assignments edit in place)
-            old = tuple(copy.deepcopy(getattr(self, name)) for name in self._LOCK_FIELDS)
-            check = (compare_upgrade_locks, (self.config, self.up_axis, self.rate_hz, old, self._reservoir_poses(job)))
+            check = (compare_upgrade_locks, (self.config, self.up_axis, self.rate_hz, self._lock_copy(), self._reservoir_poses(job)))
             job["worker_job"], future = self._worker.submit(job["markers"], job["visible"], self.rate_hz or 120.0, self.up_axis,
                                                             job["prior"], job["shape"], self._upgrade_config(job), after=check)
             self._upgrade_job = (future, job)
@@ -1690,7 +1688,9 @@ class WindowedSolver:
                 self.stats["last_upgrade_error"] = str(exc)
                 return
             fits = None
-            if "worker_job" in job:
+            if "result" in job:  # a judgement again, in the worker (_judge_in_worker)
+                res, fits = job["result"], res
+            elif "worker_job" in job:
                 res, fits = res
             self._finish_upgrade(res, job, fits)
 
@@ -1737,9 +1737,14 @@ class WindowedSolver:
         own fit with the refined frames' residuals instead adopted worse locks (those frames were
         fitted to the current lock; the solver's budgets are short) and refused better ones.
         fits: (current, candidate) as the worker process judged them under the lock the upgrade
-        started from; used while that is still the lock (else judged here).
+        started from; used while that is still the lock (else judged there again:
+        ``_judge_in_worker``; without a worker, here).
         Dropped when the lock changed meanwhile (a re-bootstrap)."""
         c = self.config
+        if (fits is not None and job["labels_version"] != self.labels_version and job["generation"] == self._lock_generation
+                and job.get("judgements", 0) < self._MAX_JUDGEMENTS and self._worker is not None and not self._worker.broken):
+            self._judge_in_worker(res, job)
+            return
         self.stats["upgrades"] = self.stats.get("upgrades", 0) + 1
         self.stats.setdefault("upgrade_seconds", []).append(round(time.perf_counter() - job["t0"], 3))
         if job["generation"] != self._lock_generation:
@@ -1758,7 +1763,7 @@ class WindowedSolver:
         if fits is not None and job["labels_version"] == self.labels_version:
             current, candidate = fits
             self.stats["upgrade_checks_in_worker"] = self.stats.get("upgrade_checks_in_worker", 0) + 1
-        else:  # judged here: no worker, or markers were re-assigned while it ran
+        else:  # judged here: no worker, or markers kept being re-assigned while it judged
             current, candidate = self._compare_locks(new, self._reservoir_poses(job))
         self.stats.setdefault("upgrade_fit_mm", []).append((round(1000 * current, 2), round(1000 * candidate, 2)))
         if not candidate < c.upgrade_accept_ratio * current:
@@ -1768,6 +1773,27 @@ class WindowedSolver:
         self._adopt_lock(res)
         self._reyaw_in_flight(old_yaw)
         self._start_revision()
+
+    # markers re-assigned while the worker judged an upgrade (the re-check re-assigns a marker or two
+    # every few seconds; an upgrade runs 15-30 s): judged there again against the lock as it is now,
+    # this many times at most, then here (a ~0.5 s stall of the stream)
+    _MAX_JUDGEMENTS = 3
+
+    def _judge_in_worker(self, res, job: dict) -> None:
+        """Judge the upgrade's result in the worker process again, against the current lock; it is
+        adopted or refused when that judgement is back (``_poll_upgrade``)."""
+        job["judgements"] = job.get("judgements", 0) + 1
+        job["labels_version"] = self.labels_version
+        job["result"] = res
+        job["worker_job"], future = self._worker.call(judge_locks_in_worker, self.config, self.up_axis, self.rate_hz,
+                                                      self._lock_copy(), self._lock_from(res), self._reservoir_poses(job))
+        self._upgrade_job = (future, job)
+        self.stats["upgrade_judged_again"] = self.stats.get("upgrade_judged_again", 0) + 1
+
+    def _lock_copy(self) -> tuple:
+        """The current lock (``_LOCK_FIELDS``), copied: a job to the worker is pickled later, on the
+        pool's feeder thread, and re-assignments edit the arrays in place."""
+        return tuple(copy.deepcopy(getattr(self, name)) for name in self._LOCK_FIELDS)
 
     @staticmethod
     def _same_part(a, b) -> bool:
@@ -1897,17 +1923,26 @@ def compare_upgrade_locks(res, worker_state: dict, config: WindowedSolverConfig,
     ``after``): ``WindowedSolver._compare_locks`` of the result's lock against ``lock``, the lock
     the upgrade started from, on the reservoir frames.  The stream's process then only adopts.
     A lock-free solver on the same models and config is kept in the worker's cache."""
+    new = _lock_free_solver(worker_state, config, up_axis, rate_hz)._lock_from(res)
+    return judge_locks_in_worker(worker_state, None, config, up_axis, rate_hz, lock, new, reservoir)
+
+
+def judge_locks_in_worker(worker_state: dict, check, config: WindowedSolverConfig, up_axis: str, rate_hz: float | None,
+                          lock: tuple, new: tuple, reservoir: dict) -> tuple[float, float]:
+    """Run in the solve worker (``StagedSolveWorker.call``; check unused: ~0.5 s):
+    ``WindowedSolver._compare_locks`` of the lock ``new`` against ``lock`` on the reservoir frames."""
     solver = _lock_free_solver(worker_state, config, up_axis, rate_hz)
     solver._set_lock(lock)
-    return solver._compare_locks(solver._lock_from(res), reservoir)
+    return solver._compare_locks(new, reservoir)
 
 
 def revise_in_worker(worker_state: dict, check, config: WindowedSolverConfig, up_axis: str, rate_hz: float | None,
                      lock: tuple, arrays: dict) -> dict:
     """Run in the solve worker (``StagedSolveWorker.call``) after a lock upgrade was adopted: the
     revision of the frames in ``arrays`` (``_Frame.REVISED_FROM`` stacked; refined under the old
-    lock, in capture order) under ``lock``, hop by hop as ``WindowedSolver._revise_step`` does it.  Returns per frame theta (N,72) and trans (N,3)
-    under the lock, joints (N,24,3), residual (N,) and the world root rotation vector root (N,3)."""
+    lock, in capture order) under ``lock``, hop by hop as ``WindowedSolver._revise_step`` does it.
+    Returns per frame theta (N,72) and trans (N,3) under the lock, joints (N,24,3), residual (N,)
+    and the world root rotation vector root (N,3)."""
     solver = _lock_free_solver(worker_state, config, up_axis, rate_hz)
     solver._set_lock(lock)
     frames = _Frame.from_arrays(arrays)

@@ -445,15 +445,20 @@ def test_lock_upgrade_on_the_reservoir_repairs_a_wrong_lock(streamed):
     assert e.stats["upgrade_checks_in_worker"] == 1
     np.testing.assert_allclose(e.stats["upgrade_fit_mm"], b.stats["upgrade_fit_mm"], atol=0.02)
     # a marker re-assigned (here: dropped) while the upgrade ran: the current lock is no longer
-    # the one the worker judged against, so it is judged here, under the lock as it is now
+    # the one the worker judged against, so the worker judges it again against the lock as it is
+    # now (still not in this process), and it is adopted when that is back
     g = _mislocked_clone(streamed)
     g.config = replace(g.config, upgrade_in_background=True)
     g._worker = worker
     g._upgrade_lock()
     g._unassign(np.array([int(np.flatnonzero(g.face_ids >= 0)[0])]))
     g._upgrade_job[0].result(timeout=300)
+    g._reservoir_fit = judged_here
     g._poll_upgrade()
-    assert "upgrade_checks_in_worker" not in g.stats and g.stats["upgrades"] == 1
+    assert g.stats["upgrade_judged_again"] == 1 and g._upgrade_job is not None and g.labels_version == version + 1
+    g._upgrade_job[0].result(timeout=120)
+    g._poll_upgrade()
+    assert g.stats["upgrade_checks_in_worker"] == 1 and g.stats["upgrades"] == 1 and g._upgrade_job is None
     current, candidate = g.stats["upgrade_fit_mm"][0]
     assert candidate < current and g.labels_version == version + 2
     np.testing.assert_array_equal(g.face_ids, upgraded_faces)
