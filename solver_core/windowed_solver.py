@@ -1665,7 +1665,7 @@ class WindowedSolver:
         if c.upgrade_in_background and self._worker is not None:
             # the worker also judges the result against the current lock (two re-solves of the
             # reservoir, ~0.5 s that stalled the stream when run here at adoption)
-            check = (compare_upgrade_locks, (self.config, self.up_axis, self.rate_hz, self._lock_copy(), self._reservoir_poses(job)))
+            check = (compare_upgrade_locks, (self.config, self.up_axis, self.rate_hz, self._lock_copy(), job["reservoir"]))
             job["worker_job"], future = self._worker.submit(job["markers"], job["visible"], self.rate_hz or 120.0, self.up_axis,
                                                             job["prior"], job["shape"], self._upgrade_config(job), after=check)
             self._upgrade_job = (future, job)
@@ -1710,12 +1710,14 @@ class WindowedSolver:
         prior = BodyPrior(prior72[:, :3].copy(), prior72[:, 3:].reshape(-1, 23, 3).copy(), np.tile(shape, (len(frames), 1)),
                           np.ones(len(frames), dtype=bool), np.ones(len(frames)), np.array([f.stamp for f in frames], dtype=np.int64),
                           "world")
-        return {"markers": np.stack([f.markers for f in frames]), "visible": np.stack([f.visible for f in frames]),
-                "prior": prior, "shape": shape,
+        markers, visible = np.stack([f.markers for f in frames]), np.stack([f.visible for f in frames])
+        # what the lock check reads (_compare_locks): the frames' refined poses and priors under the current lock
+        reservoir = {"markers": markers, "visible": visible, "theta": np.stack([f.theta for f in frames]),
+                     "trans": np.stack([f.trans for f in frames]), "prior": np.stack([f.prior for f in frames])}
+        return {"markers": markers, "visible": visible, "prior": prior, "shape": shape,
                 "generation": self._lock_generation, "labels_version": self.labels_version,
                 "cancel": threading.Event(), "t0": time.perf_counter(),
-                "stride": self._reservoir_stride,
-                "frames": frames}
+                "stride": self._reservoir_stride, "reservoir": reservoir}
 
     def _solve_upgrade(self, job: dict):
         return solve(job["markers"], job["visible"], self.rate_hz or 120.0, self.up_axis, job["prior"], job["shape"],
@@ -1771,7 +1773,7 @@ class WindowedSolver:
             current, candidate = fits
             self.stats["upgrade_checks_in_worker"] = self.stats.get("upgrade_checks_in_worker", 0) + 1
         else:  # judged here: no worker, or markers kept being re-assigned while it judged
-            current, candidate = self._compare_locks(new, self._reservoir_poses(job))
+            current, candidate = self._compare_locks(new, job["reservoir"])
         self.stats.setdefault("upgrade_fit_mm", []).append((round(1000 * current, 2), round(1000 * candidate, 2)))
         if not candidate < c.upgrade_accept_ratio * current:
             self.stats["upgrades_rejected"] = self.stats.get("upgrades_rejected", 0) + 1
@@ -1793,7 +1795,7 @@ class WindowedSolver:
         job["labels_version"] = self.labels_version
         job["result"] = res
         job["worker_job"], future = self._worker.call(judge_locks_in_worker, self.config, self.up_axis, self.rate_hz,
-                                                      self._lock_copy(), self._lock_from(res), self._reservoir_poses(job))
+                                                      self._lock_copy(), self._lock_from(res), job["reservoir"])
         self._upgrade_job = (future, job)
         self.stats["upgrade_judged_again"] = self.stats.get("upgrade_judged_again", 0) + 1
 
@@ -1809,16 +1811,10 @@ class WindowedSolver:
             return a is None and b is None
         return np.array_equal(np.sort(np.asarray(a)), np.sort(np.asarray(b)))
 
-    def _reservoir_poses(self, job: dict) -> dict:
-        """The upgrade's reservoir frames as the lock check reads them: markers (R,M,3), visible
-        (R,M), their refined theta (R,72), trans (R,3) and priors (R,72) under the current lock."""
-        frames = job["frames"]
-        return {"markers": job["markers"], "visible": job["visible"], "theta": np.stack([f.theta for f in frames]),
-                "trans": np.stack([f.trans for f in frames]), "prior": np.stack([f.prior for f in frames])}
-
     def _compare_locks(self, new: tuple, reservoir: dict) -> tuple[float, float]:
         """(current, candidate): mean marker residual (metres) of the reservoir frames
-        (``_reservoir_poses``) re-solved per frame under the current lock and under the lock
+        (markers (R,M,3), visible (R,M), refined theta (R,72), trans (R,3), priors (R,72) under the
+        current lock: ``_upgrade_inputs``) re-solved per frame under the current lock and under the lock
         ``new``, from the same world poses and priors expressed under each lock's yaw and camera
         tilt.  The current lock stays in place."""
         theta, trans, prior = reservoir["theta"], reservoir["trans"], reservoir["prior"]
