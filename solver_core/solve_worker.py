@@ -140,24 +140,19 @@ class StagedSolveWorker:
         ``function(result, worker_state, *args)`` (worker_state: the models and a ``cache`` dict
         that lives as long as the worker); the Future then holds (result, its return value).
         The function must be importable by name (it travels as a reference)."""
-        self._next_id += 1
-        try:
-            return self._next_id, self._pool.submit(_run_solve, self._next_id, markers, visible, rate_hz, up_axis, prior, shape,
-                                                    config, after)
-        except BrokenExecutor as exc:
-            self.broken = True
-            failed: Future = Future()
-            failed.set_exception(exc)
-            return self._next_id, failed
+        return self._submit(_run_solve, markers, visible, rate_hz, up_axis, prior, shape, config, after)
 
     def call(self, fn, *args) -> tuple[int, Future]:
         """(job id, Future of ``fn(worker_state, check, *args)``) run in the worker after the jobs
         before it: worker_state holds the models and a ``cache`` dict that lives as long as the
         worker; ``check()`` raises ``SolveCancelled`` once the job is cancelled (call it often).
         fn must be importable by name.  A dead worker gives a Future holding ``BrokenExecutor``."""
+        return self._submit(_run_call, fn, args)
+
+    def _submit(self, runner, *args) -> tuple[int, Future]:
         self._next_id += 1
         try:
-            return self._next_id, self._pool.submit(_run_call, self._next_id, fn, args)
+            return self._next_id, self._pool.submit(runner, self._next_id, *args)
         except BrokenExecutor as exc:
             self.broken = True
             failed: Future = Future()
