@@ -351,6 +351,26 @@ class WindowedSolverConfig:
     # Revised frames handed out per ``refine_ready`` call once the worker's revision is back (they
     # come back all at once; a caller publishes each).
     revise_emit_frames: int = 60
+    # Beyond the paper: when the take ends (``flush``), the ring (the last ``revise_s``) is revised
+    # once more under the final lock with the offline IK's mean-offset pose prior
+    # (``regularizers.mean_pose_offset_energy``) in the form a per-frame solve can take: each frame's
+    # pose-prior target is its video prior minus the ring's mean body-pose difference to the video
+    # prior.  A limb with few markers slides its points and its pose together at little cost in the
+    # markers; the per-frame prior cannot choose the place along that valley without the video's
+    # jitter, the video's error averaged over the take can.  Session 23 (own script over
+    # ``stream_solve``, the bench's full-suite walk / jump / arms; recording MPJPE mm without -> with):
+    # 20 markers 31.99 / 28.91 / 17.88 -> 31.46 / 28.72 / 17.93, 30 markers 11.72 / 12.07 / 10.19 ->
+    # 10.69 / 11.75 / 9.90, 40 markers 7.79 / 5.99 / 7.64 -> 7.24 / 5.78 / 7.45 (offline 22.05 / 18.18
+    # / 16.66, 10.49 / 10.20 / 9.77, 6.72 / 7.77 / 7.62), MPJVE a little lower.  Part of it is the
+    # revision itself (every frame under the final lock; frames refined after the last adoption are
+    # revised too): without the shift 31.91 / 28.86 / 17.82, 11.08 / 12.07 / 10.20, 7.77 / 5.98 / 7.55.
+    # Applying the shift 3 times: 30 / 40 markers better still (10.72 / 11.62 / 9.79, 7.03 / 5.54 /
+    # 7.34), 20 markers worse (30.98 / 29.10 / 18.99).  The same term run causally in the live
+    # estimate (an exponential mean of the refined frames' differences shifting the next frames'
+    # targets) did not help (gain 3: 30-marker walk fixed-lag 14.42 -> 14.37 mm) or diverged (gain 36,
+    # the offline weight's equivalent): under the bootstrap's lock that mean is the lock's error.
+    # Costs one revision of the ring when the take ends (30 s of 120 Hz: ~8 s in the worker process).
+    revise_at_end: bool = True
     # Ring sizes: recent frames kept for re-assignment (frames), priors kept (messages).
     history_frames: int = 64
     prior_buffer: int = 512
@@ -375,7 +395,8 @@ class WindowResult:
     """One solved frame.  poses (72,) world-frame AMASS axis-angle (yaw folded into the root);
     trans (3,), joints (24,3) metres; betas (B,); residual_m: mean distance of the visible assigned
     markers to their predicted positions; kind 'estimate', 'refined' or 'revised' (a refined
-    frame solved again after a lock upgrade, ``WindowedSolverConfig.revise_s``)."""
+    frame solved again after a lock upgrade, ``WindowedSolverConfig.revise_s``, or at the take's end,
+    ``revise_at_end``)."""
 
     stamp_ns: int
     frame_index: int
@@ -403,7 +424,8 @@ class MarkerLabelState:
 class _Frame:
     """Per-frame state shared by the pending window, the context and the history rings."""
 
-    __slots__ = ("stamp", "index", "markers", "visible", "theta", "trans", "prior", "prior_weight", "residual", "joints")
+    __slots__ = ("stamp", "index", "markers", "visible", "theta", "trans", "prior", "prior_weight", "residual", "joints",
+                 "video_prior")
 
     def __init__(self, stamp, index, markers, visible):
         self.stamp = int(stamp)
@@ -416,6 +438,7 @@ class _Frame:
         self.prior_weight = 1.0
         self.residual = math.nan
         self.joints = None
+        self.video_prior = False  # ``prior`` is the video's (else the previous frame's pose)
 
     # what a revision reads of a refined frame
     REVISED_FROM = ("stamp", "index", "markers", "visible", "theta", "trans", "prior")
@@ -840,6 +863,29 @@ class WindowedSolver:
         out += self._revise_all()
         while self._pending:
             out += self._refine(min(len(self._pending), self.config.lag_frames + self.config.hop_frames), final=True)
+        if self.config.revise_at_end:
+            out += self._revise_at_end()
+        return out
+
+    def _revise_at_end(self) -> list[WindowResult]:
+        """The ring revised under the final lock, each frame's pose-prior target shifted by the
+        ring's mean body-pose difference to the video prior (``revise_at_end``)."""
+        frames = [f for f in self._refined_ring or () if f.video_prior]
+        if not self.has_prior or len(frames) < 2:
+            return []
+        diff = np.stack([f.theta - f.prior for f in frames])
+        diff[:, :3] = 0.0  # the root keeps its own prior (the mean term is over the body's joints)
+        shift = diff.mean(axis=0)
+        for f in frames:
+            f.prior = f.prior - shift
+        t0 = time.perf_counter()
+        self._start_revision("revisions_at_end")
+        out = self._worker_revision(wait=True) if self._revision is not None and "future" in self._revision else []
+        out += self._revise_all()
+        # the take is over and its frames are final: a second flush (end of stream, then stop) or a
+        # later upgrade has nothing left to revise, and the shift is not applied twice
+        self._refined_ring.clear()
+        self.stats["revise_at_end_s"] = round(time.perf_counter() - t0, 3)
         return out
 
     def __getstate__(self) -> dict:
@@ -1007,6 +1053,7 @@ class WindowedSolver:
         prior72 = self._tilt_priors(np.concatenate([prior.root_orient, prior.body_pose.reshape(len(frames), -1)], 1))
         for i, f in enumerate(frames):
             f.prior = prior72[i] if has_prior else theta[i].copy()
+            f.video_prior = has_prior
         theta, trans = self._gauss_newton(theta, trans, markers, vis, prior72 if has_prior else theta.copy(), self.estimate_iterations)
         out = []
         lin = self._linearize(theta, trans, markers, vis, jacobian=False)
@@ -1319,6 +1366,7 @@ class WindowedSolver:
             theta0[:3] = rotation_vector(r_prev @ r_pp.T @ r_prev)
         prior = self._prior_at(frame.stamp) if self.has_prior else None
         frame.prior = prior if prior is not None else (prev.theta.copy() if prev is not None else theta0.copy())
+        frame.video_prior = prior is not None
         mk, vis = frame.markers[None], frame.visible[None]
         theta, trans = self._gauss_newton(theta0[None], trans0[None], mk, vis, frame.prior[None], iterations)
         lin = self._linearize(theta, trans, mk, vis, jacobian=False)
@@ -1401,15 +1449,16 @@ class WindowedSolver:
         return out
 
     # ------------------------------------------------------------------ revisions after a lock upgrade
-    def _start_revision(self) -> None:
+    def _start_revision(self, counter: str = "revisions") -> None:
         """Queue every frame refined under the previous lock (the ring) for a revision under this
-        one: live with the worker process, the whole revision as one job there; else hop by hop here."""
+        one: live with the worker process, the whole revision as one job there; else hop by hop here.
+        counter: the stats entry that counts it."""
         self._cancel_revision()
         if not self._refined_ring:
             return
         frames = list(self._refined_ring)
         self._revision = {"frames": frames, "pos": 0, "ready": 0}
-        self.stats["revisions"] = self.stats.get("revisions", 0) + 1
+        self.stats[counter] = self.stats.get(counter, 0) + 1
         if self.config.upgrade_in_background and self._worker is not None and not self._worker.broken:
             lock = self._lock_copy()
             # stacked arrays: the pool pickles the job on a thread holding the interpreter lock, and

@@ -37,7 +37,9 @@ def streamed(session):
     md, rows, up_axis, body_model, gt = session_stream(session)
     model, chamfer = load_models(body_model)
     # no lock upgrade inside the stream (the 4 s take would reach the first one): tests start them
-    cfg = replace(WindowedSolverConfig(), bootstrap_s=2.0, recheck_period_s=1.0, recheck_frames=24, upgrade_growth=2.0)
+    # and no end-of-take revision at the flush (its own test): the rings keep the refined frames
+    cfg = replace(WindowedSolverConfig(), bootstrap_s=2.0, recheck_period_s=1.0, recheck_frames=24, upgrade_growth=2.0,
+                  revise_at_end=False)
     solver = WindowedSolver(model, cfg, up_axis, md.rate_hz, chamfer)
     results, pi = [], 0
     for i in range(md.positions.shape[0]):
@@ -162,7 +164,7 @@ def test_refined_accuracy_close_to_offline(streamed, session):
     gt = streamed["gt"]
     T = streamed["md"].positions.shape[0]
     rate = streamed["md"].rate_hz
-    joints = {k: np.zeros((T, 24, 3)) for k in ("estimate", "refined")}
+    joints = {k: np.zeros((T, 24, 3)) for k in ("estimate", "refined", "revised")}
     for r in streamed["results"]:
         joints[r.kind][r.frame_index] = r.joints
     offline, _ = run_staged_solver(inputs_from_session(session), "uuo", config=fast_bootstrap_config())
@@ -174,6 +176,43 @@ def test_refined_accuracy_close_to_offline(streamed, session):
     assert est < 1.5 * off + 15.0, (ref, est, off)
     # the smoothing pass is smoother than the causal estimate
     assert mpjve(joints["refined"], gj, rate) <= mpjve(joints["estimate"], gj, rate) + 1.0
+
+
+def test_the_take_end_revises_the_ring_with_the_mean_offset_prior(streamed):
+    from uuomocap.solver_core.metrics import mpjpe
+
+    s = _clone(streamed)
+    s.config = replace(s.config, revise_at_end=True)
+    ring = list(s._refined_ring)
+    assert len(ring) == streamed["md"].positions.shape[0] and all(f.video_prior for f in ring)
+    video = np.stack([f.prior for f in ring])
+    theta0 = np.stack([f.theta for f in ring])
+    joints0 = np.stack([f.joints for f in ring])
+    residual0 = np.array([f.residual for f in ring])
+    out = s.flush()
+    # every frame of the ring once more, in order, as a revised result
+    assert [r.frame_index for r in out] == [f.index for f in ring] and {r.kind for r in out} == {"revised"}
+    assert s.stats["revisions_at_end"] == 1 and "revisions" not in s.stats
+    # the mean-offset term: each joint's mean rotation difference to the video prior shrinks ...
+    theta1 = np.stack([f.theta for f in ring])
+    before = np.abs((theta0 - video)[:, 3:].mean(axis=0))
+    after = np.abs((theta1 - video)[:, 3:].mean(axis=0))
+    assert after.mean() < 0.9 * before.mean(), (before.mean(), after.mean())  # 40 markers pin most joints
+    # ... while the markers still fit (mean residual within 0.5 mm of the refined frames')
+    residual1 = np.array([r.residual_m for r in out])
+    assert residual1.mean() < residual0.mean() + 5e-4, (residual0.mean(), residual1.mean())
+    gt = np.asarray(streamed["gt"]["joints"])[[f.index for f in ring]]
+    m0, m1 = mpjpe(joints0, gt), mpjpe(np.stack([r.joints for r in out]), gt)
+    print(f"\nmean offset {np.degrees(before.mean()):.2f} -> {np.degrees(after.mean()):.2f} deg, residual "
+          f"{residual0.mean() * 1e3:.2f} -> {residual1.mean() * 1e3:.2f} mm, MPJPE {m0:.2f} -> {m1:.2f} mm")
+    assert m1 < m0 + 0.5
+    # a second flush (end of stream, then the node's stop) revises nothing more
+    assert s.flush() == []
+    # without video priors there is no mean offset to take: nothing is revised
+    s2 = _clone(streamed)
+    s2.config = replace(s2.config, revise_at_end=True)
+    s2.has_prior = False
+    assert s2.flush() == []
 
 
 def test_occlusion_gap_keeps_correspondence(streamed):
