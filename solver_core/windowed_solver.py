@@ -40,7 +40,7 @@ import threading
 import time
 import weakref
 from collections import deque
-from concurrent.futures import BrokenExecutor
+from concurrent.futures import BrokenExecutor, wait as wait_futures
 from itertools import chain
 from dataclasses import dataclass, field, replace
 
@@ -371,11 +371,26 @@ class WindowedSolverConfig:
     # the offline weight's equivalent): under the bootstrap's lock that mean is the lock's error.
     # Costs one revision of the ring when the take ends (30 s of 120 Hz: ~8 s in the worker process).
     revise_at_end: bool = True
+    # Beyond the paper: when the take ends (``flush``), one more lock upgrade on the reservoir (now
+    # spread over the whole take) before the end-of-take revision, when the take grew by this
+    # factor since the last lock upgrade started (0 = never).  Judged like every upgrade (adopted
+    # only when the reservoir fits better under it), synchronous (the worker process solves it when
+    # there is one; the revision waits for it).  A live stop skips it (``end_upgrades``); an end of
+    # stream runs it.  Session 24 (own script over ``stream_solve``, the bench's full-suite walk /
+    # jump / arms, recording MPJPE mm without -> with; this machine, where 7 of the 12 sessions kept
+    # the bootstrap's lock through the take): 20 markers 31.51 / 27.34 / 17.75 -> 23.50 / 26.88 /
+    # 17.75, 30 markers 12.15 / 10.92 / 11.65 -> 12.15 / 10.92 / 14.39, 40 markers 8.63 / 5.75 / 9.95
+    # -> 8.63 / 5.75 / 6.28, 50 markers 7.49 / 8.69 / 6.48 -> 7.49 / 5.86 / 6.48: four better, one
+    # worse (the 30-marker arms: fit 1.44 -> 1.30 mm under the new lock, MPJPE up), seven unchanged
+    # (refused, or no better).  Costs one upgrade solve at the end (8 s takes at 30 Hz: 10-17 s).
+    upgrade_at_end_growth: float = 1.1
     # Ring sizes: recent frames kept for re-assignment (frames), priors kept (messages).
     history_frames: int = 64
     prior_buffer: int = 512
 
     def __post_init__(self):
+        if self.upgrade_at_end_growth < 0:
+            raise ValueError("upgrade_at_end_growth >= 0 is required (0 = no upgrade at the take's end)")
         if self.revise_s < 0 or self.revise_iterations < 1 or self.revise_every_hops < 1:
             raise ValueError("revise_s >= 0, revise_iterations >= 1 and revise_every_hops >= 1 are required")
         if self.bootstrap_s <= 0 or self.lag_frames < 0 or self.hop_frames < 1 or self.context_frames < 0:
@@ -863,9 +878,31 @@ class WindowedSolver:
         out += self._revise_all()
         while self._pending:
             out += self._refine(min(len(self._pending), self.config.lag_frames + self.config.hop_frames), final=True)
+        if self.config.upgrade_at_end_growth > 0:
+            self._upgrade_at_end()  # before the end-of-take revision: that one then runs under it
         if self.config.revise_at_end:
             out += self._revise_at_end()
         return out
+
+    def _upgrade_at_end(self) -> None:
+        """One more lock upgrade on the whole take's reservoir, waited for (``upgrade_at_end_growth``)."""
+        c = self.config
+        if not (self.locked and self._boot is None and c.upgrade_frames > 0 and not self._upgrades_ended
+                and self._reservoir_seen >= self._MIN_UPGRADE_FRAMES
+                and self._reservoir_seen >= c.upgrade_at_end_growth * self._locked_span):
+            return
+        t0 = time.perf_counter()
+        self._upgrade_job = None  # flush cancelled the one in flight: its reservoir is older
+        started = self.stats.get("upgrades_started", 0)
+        self._upgrade_lock()
+        while self._upgrade_job is not None:  # in the worker: wait, then judge / adopt (_poll_upgrade)
+            wait_futures([self._upgrade_job[0]])
+            self._poll_upgrade()
+        if self.stats.get("upgrades_started", 0) > started:
+            self.stats["upgrades_at_end"] = self.stats.get("upgrades_at_end", 0) + 1
+        if c.revise_at_end:
+            self._cancel_revision()  # an adoption queued a revision: the end-of-take one covers the ring
+        self.stats["upgrade_at_end_s"] = round(time.perf_counter() - t0, 3)
 
     def _revise_at_end(self) -> list[WindowResult]:
         """The ring revised under the final lock, each frame's pose-prior target shifted by the

@@ -37,9 +37,9 @@ def streamed(session):
     md, rows, up_axis, body_model, gt = session_stream(session)
     model, chamfer = load_models(body_model)
     # no lock upgrade inside the stream (the 4 s take would reach the first one): tests start them
-    # and no end-of-take revision at the flush (its own test): the rings keep the refined frames
+    # and no end-of-take upgrade or revision at the flush (their own tests): the rings keep the refined frames
     cfg = replace(WindowedSolverConfig(), bootstrap_s=2.0, recheck_period_s=1.0, recheck_frames=24, upgrade_growth=2.0,
-                  revise_at_end=False)
+                  revise_at_end=False, upgrade_at_end_growth=0.0)
     solver = WindowedSolver(model, cfg, up_axis, md.rate_hz, chamfer)
     results, pi = [], 0
     for i in range(md.positions.shape[0]):
@@ -213,6 +213,36 @@ def test_the_take_end_revises_the_ring_with_the_mean_offset_prior(streamed):
     s2.config = replace(s2.config, revise_at_end=True)
     s2.has_prior = False
     assert s2.flush() == []
+
+
+def test_the_take_end_upgrades_the_lock_on_the_whole_take_before_the_revision(streamed):
+    s = _clone(streamed)
+    s.config = replace(s.config, revise_at_end=True, upgrade_at_end_growth=1.1)
+    ring = [f.index for f in s._refined_ring]
+    fits_before = len(s.stats.get("upgrade_fit_mm", []))
+    generation = s._lock_generation
+    out = s.flush()
+    # one upgrade on the reservoir (which now spans the take), judged like every upgrade ...
+    assert s.stats["upgrades_at_end"] == 1 and s.stats["upgrade_at_end_s"] > 0
+    assert len(s.stats["upgrade_fit_mm"]) == fits_before + 1
+    current, candidate = s.stats["upgrade_fit_mm"][-1]
+    adopted = s._lock_generation != generation
+    assert adopted == (candidate < current), (current, candidate, adopted)
+    # ... then the ring revised once, under the lock the take ends with (no second revision queued
+    # by the adoption)
+    assert [r.frame_index for r in out] == ring and {r.kind for r in out} == {"revised"}
+    assert s.stats["revisions_at_end"] == 1 and "revisions" not in s.stats and s._revision is None
+    assert all(r.labels_version == s.labels_version for r in out)
+    # a second flush starts nothing: the take has not grown since
+    assert s.flush() == [] and s.stats["upgrades_at_end"] == 1
+    # a live stop (end_upgrades) skips it
+    s2 = _clone(streamed)
+    s2.config = replace(s2.config, upgrade_at_end_growth=1.1)
+    s2.end_upgrades()
+    s2.flush()
+    assert "upgrades_at_end" not in s2.stats and "upgrade_at_end_s" not in s2.stats
+    with pytest.raises(ValueError, match="upgrade_at_end_growth"):
+        WindowedSolverConfig(upgrade_at_end_growth=-1.0)
 
 
 def test_occlusion_gap_keeps_correspondence(streamed):

@@ -234,6 +234,9 @@ def uuo_window(session_dir: Path, out_npz: Path, body_model: str | None = None, 
         "refined_joints": run.refined["joints"],
     }
     secs = {"bootstrap": round(run.bootstrap_s, 3), "total": round(time.perf_counter() - t0, 3)}
+    for key in ("upgrade_at_end_s", "revise_at_end_s"):  # the take's end (WindowedSolver.flush)
+        if key in run.stats:
+            secs[key.removesuffix("_s")] = run.stats[key]
     out["stage_seconds"] = np.str_(json.dumps(secs))
     write_npz(out_npz, out)
     info = {"method": "uuo-window", "stage_seconds": secs, "steady_fps": round(run.steady_fps, 1),
@@ -241,7 +244,9 @@ def uuo_window(session_dir: Path, out_npz: Path, body_model: str | None = None, 
             "rebootstraps": run.stats.get("rebootstraps", 0), "reassigned": run.stats.get("reassigned", 0),
             "revised_frames": int(np.isfinite(run.revised["poses"]).all(axis=1).sum()) if run.revised else 0,
             # Stage-5 marker fit (mm) of each bootstrap start, and the one locked
-            "bootstrap_start_fits_mm": run.stats.get("bootstrap_start_fits_mm"), "bootstrap_start_chosen": run.stats.get("bootstrap_start_chosen")}
+            "bootstrap_start_fits_mm": run.stats.get("bootstrap_start_fits_mm"), "bootstrap_start_chosen": run.stats.get("bootstrap_start_chosen"),
+            # marker fit (mm) of the reservoir under the current lock and under each upgrade's (the last: the take's end)
+            "upgrade_fit_mm": run.stats.get("upgrade_fit_mm", [])}
     if gt is not None and "joints" in gt:
         for kind in ("estimate", "refined"):
             info.update({k: round(v, 3) for k, v in estimate_metrics(run, gt, kind).items()})

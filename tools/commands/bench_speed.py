@@ -117,6 +117,8 @@ def bench_session(sdir: Path, offline: bool, bar) -> dict:
         "bootstrap_start_fits_mm": run.stats.get("bootstrap_start_fits_mm"), "bootstrap_start_chosen": run.stats.get("bootstrap_start_chosen"),
         # the end-of-take revision (WindowedSolverConfig.revise_at_end): seconds the flush spent on it
         "revise_at_end_s": run.stats.get("revise_at_end_s", float("nan")),
+        # the end-of-take lock upgrade before it (WindowedSolverConfig.upgrade_at_end_growth)
+        "upgrade_at_end_s": run.stats.get("upgrade_at_end_s", float("nan")),
         "lock_upgrades_started": run.stats.get("upgrades_started", 0), "lock_upgrades": run.stats.get("upgrades", 0), "lock_upgrade_s": run.stats.get("upgrade_seconds", []),
     }
     if gt is not None:
@@ -215,7 +217,8 @@ def run(args) -> int:
         bar.update(1)
     bar.close()
     keys = ["steady_fps", "steady_fps_cpu", "realtime_factor", "bootstrap_s", "refined_mpjpe", "refined_mpjve", "estimate_mpjpe", "estimate_mpjve",
-            "recording_mpjpe", "recording_mpjve", "offline_mpjpe", "offline_mpjve", "offline_s", "revise_at_end_s"]
+            "recording_mpjpe", "recording_mpjve", "offline_mpjpe", "offline_mpjve", "offline_s", "revise_at_end_s",
+            "upgrade_at_end_s"]
     summary = {k: _mean(rows, k) for k in keys}
     summary["estimate_latency_p95_ms"] = _mean([r["estimate_latency_ms"] for r in rows], "p95")
     summary["estimate_latency_p99_ms"] = _mean([r["estimate_latency_ms"] for r in rows], "p99")
@@ -250,7 +253,8 @@ def run(args) -> int:
                  f"{s['estimate_mpjpe']:.1f} / {s['estimate_mpjve']:.1f}; offline {s['offline_mpjpe']:.1f} / {s['offline_mpjve']:.1f} "
                  f"(offline solve {s['offline_s']:.1f} s per session); recording (revised frames - after a lock upgrade and "
                  f"at the take's end, {sum(r.get('revised_frames', 0) for r in rows)} frames, else refined) {s['recording_mpjpe']:.1f} / "
-                 f"{s['recording_mpjve']:.1f}; the end-of-take revision took {s['revise_at_end_s']:.1f} s per session")
+                 f"{s['recording_mpjve']:.1f}; at the take's end the lock upgrade took {s['upgrade_at_end_s']:.1f} s and the "
+                 f"revision {s['revise_at_end_s']:.1f} s per session")
     ups = [(Path(r["session"]).name[:16], r["lock_upgrades_started"], r["lock_upgrades"], r["lock_upgrade_s"]) for r in rows]
     lines.append("bootstrap starts (Stage-5 marker fit, mm; * = locked): " + "; ".join(
         f"{Path(r['session']).name[:16]} " + " / ".join(("-" if f is None else f"{f:.2f}") + ("*" if i == r["bootstrap_start_chosen"] else "")
