@@ -146,6 +146,9 @@ class Solver(Node):
 
     def on_stop(self) -> None:
         if self.solver is not None:
+            # a stop ends the take at once: no end-of-take lock upgrade (a staged solve, 10-30 s);
+            # an end of stream (on_eos) runs it
+            self.solver.end_upgrades()
             self._publish(self.solver.flush())
 
     def teardown(self) -> None:
