@@ -191,7 +191,11 @@ def long_take(sdir: Path, minutes: float, rate_hz: float, bar) -> dict:
                 "buffers": solver.buffer_sizes(), "wall_s": round(time.perf_counter() - t0, 1)}
         if k % 200 == 0:
             bar.set_postfix_str(f"long take {k / rate / 60:.1f}/{minutes:g} min")
-    solver.flush()
+    t_end = time.perf_counter()
+    revised = sum(r.kind == "revised" for r in solver.flush())
+    # the take's end: the last lock upgrade and the revision of the ring (up to revise_s of frames)
+    marks["end"] = {"flush_s": round(time.perf_counter() - t_end, 1), "revised_frames": revised,
+                    "upgrade_at_end_s": solver.stats.get("upgrade_at_end_s"), "revise_at_end_s": solver.stats.get("revise_at_end_s")}
     solver.close()
     return {"minutes": minutes, "rate_hz": rate, "frames": total, "marks": marks, "stats": {k: v for k, v in solver.stats.items() if k != "bootstrap_seconds"}}
 
@@ -260,10 +264,14 @@ def run(args) -> int:
         f"{Path(r['session']).name[:16]} " + " / ".join(("-" if f is None else f"{f:.2f}") + ("*" if i == r["bootstrap_start_chosen"] else "")
                                                        for i, f in enumerate(r["bootstrap_start_fits_mm"] or []))
         for r in rows))
-    lines.append("lock upgrades (worker process; one still running when the take ends is dropped): " + "; ".join(
+    lines.append("lock upgrades (worker process; one still running when the take ends is dropped, the take's end runs its own): " + "; ".join(
         f"{n} {k0} started, {k} adopted or refused in {', '.join(f'{x:.1f}' for x in t) or '-'} s" for n, k0, k, t in ups))
     if long:
         for name, m in long["marks"].items():
+            if name == "end":
+                lines.append(f"long take end (flush {m['flush_s']:.1f} s): the last lock upgrade {m['upgrade_at_end_s'] or 0:.1f} s, "
+                             f"the ring's revision {m['revise_at_end_s'] or 0:.1f} s, {m['revised_frames']} frames revised")
+                continue
             mem = "; ".join(f"{who} RSS {d['rss_mib']:.1f} MiB (peak {d['peak_mib']:.1f})"
                             for who, d in (("solver", m.get("solver_memory", {})), ("worker", m.get("worker_memory", {}))) if d)
             lines.append(f"long take {name}: {mem or 'peak RSS %.1f MiB' % m['peak_rss_mib']}, buffers {m['buffers']}, wall {m['wall_s']:.0f} s")
