@@ -18,6 +18,11 @@ Three layers, each reusing the offline stages (no second copy of any stage):
   and of every bone vector; ``smoothness_target`` explains), solved by banded Gauss-Newton (the smoothness couples only neighbouring frames,
   so the normal equations are block-banded), warm-started from the previous pass.  Frames that
   leave the lag are published as ``refined``.
+* **Revised** (beyond the paper): lock upgrades re-run the staged solver on a reservoir of refined
+  frames spread over the take; an adopted one revises the frames refined under the old lock.  The
+  take's end (``flush``) runs one more upgrade on the whole take (``upgrade_at_end_growth``) and
+  revises the ring under the final lock with the mean-offset pose prior (``revise_at_end``).  A
+  recording keeps each frame's ``revised`` result over its ``refined`` one.
 
 Change handling: occluded markers keep their correspondence (they just drop out of the residual);
 a marker index that was never assigned (or whose track id changes) is assigned to the surface
