@@ -141,7 +141,7 @@ class Solver(Node):
     def on_eos(self, port, env) -> None:
         if port != "markers" or self.solver is None:
             return
-        self._publish(self.solver.flush())
+        self._finish_take()
         self.end_stream("solved")
 
     def on_stop(self) -> None:
@@ -149,7 +149,16 @@ class Solver(Node):
             # a stop ends the take at once: no end-of-take lock upgrade (a staged solve, 10-30 s);
             # an end of stream (on_eos) runs it
             self.solver.end_upgrades()
-            self._publish(self.solver.flush())
+            self._finish_take()
+
+    def _finish_take(self) -> None:
+        results = self.solver.flush()
+        self._publish(results)
+        st = self.solver.stats
+        if results and ("upgrade_at_end_s" in st or "revise_at_end_s" in st):  # why the last frames came late
+            self.log.info("take end: lock upgrade %s, %d frames revised in %.1f s", "%.1f s" % st["upgrade_at_end_s"]
+                          if "upgrade_at_end_s" in st else "skipped", sum(r.kind == "revised" for r in results),
+                          st.get("upgrade_at_end_s", 0.0) + st.get("revise_at_end_s", 0.0))
 
     def teardown(self) -> None:
         if self.solver is not None:
