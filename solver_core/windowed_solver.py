@@ -874,6 +874,8 @@ class WindowedSolver:
     def flush(self) -> list[WindowResult]:
         """End of stream: bootstrap on what is there if never locked, then finalise every frame."""
         out: list[WindowResult] = []
+        for key in ("upgrade_at_end_s", "revise_at_end_s"):  # they describe this flush, not an earlier take's
+            self.stats.pop(key, None)
         if self._revision is not None and "future" in self._revision:
             # the worker runs it ahead of any upgrade queued after it: wait for it, then cancel that
             out += self._worker_revision(wait=True)
