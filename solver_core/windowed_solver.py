@@ -113,12 +113,12 @@ class _StopWhenStale(SolverProgress):
 
 
 def windowed_staged_config(**overrides) -> SolverConfig:
-    """The offline solver as the bootstrap and the lock upgrades run it: Stage 2 keeps the paper's
-    shape prior (lambda_beta 1), where the offline solver uses 0.1.  Measured (40 markers, refined
+    """The offline solver as the bootstrap runs it: Stage 2 keeps the paper's shape prior
+    (lambda_beta 1), where the offline solver uses 0.1 (the lock upgrades use 0.1 since session 26:
+    ``WindowedSolverConfig.upgrade_solver``).  Measured in session 13 (40 markers, refined
     MPJPE, 13 sessions = the bench's three + ten ``sample make`` takes): 0.1 in the bootstrap and the
     upgrades 15.46 mm (the bench's three 11.59), 1 in both 14.85 (11.02), 1 in the bootstrap only
-    14.74 (11.63).  A 3 s window, or a reservoir that starts from the bootstrap's lock, leans on the
-    video's shape more than a whole take does."""
+    14.74 (11.63).  A 3 s window leans on the video's shape more than a whole take does."""
     c = SolverConfig(**overrides)
     return replace(c, pose_fitting=replace(c.pose_fitting, shape_weight=PoseFittingConfig().shape_weight))
 
@@ -317,15 +317,22 @@ class WindowedSolverConfig:
     # Run the upgrade on a worker thread while estimates go on (live streams: no ~5 s stall);
     # False keeps replays deterministic (the result lands at a fixed frame).
     upgrade_in_background: bool = False
-    # The staged solver of the upgrades (None = bootstrap_solver): the offline solver's full budgets.
-    # Measured (40 markers, refined MPJPE): 20 s walk / jump 18.2 / 25.5 mm with the bootstrap's short
-    # budgets (the jump got worse than without upgrades, 22.8), 16.6 / 20.1 with the full ones
-    # (offline 16.0 / 12.9); 8 s walk / jump / arms 18.9 vs 18.8.  Costs ~15-20 s per upgrade here
-    # instead of ~5 (a worker thread in live use).  Only the best-registered yaw hypothesis is
-    # screened (session 9: the same refined MPJPE to 0.1 mm on 7 sessions, upgrades 32-48 -> 22-31 s):
-    # the reservoir spans the take, its registration is reliable, and a wrong pick cannot do harm -
-    # an upgrade is adopted only when the reservoir fits better under it (_finish_upgrade).
-    upgrade_solver: SolverConfig | None = field(default_factory=lambda: windowed_staged_config(max_hypotheses=1))
+    # The staged solver of the upgrades (None = bootstrap_solver): the offline solver itself - its full
+    # budgets and its Stage-2 shape prior 0.1 (section "Mocap Solving" has 1; see pose_fitting) -
+    # screening only the best-registered yaw hypothesis.  Full budgets: (40 markers, refined MPJPE)
+    # 20 s walk / jump 18.2 / 25.5 mm with the bootstrap's short budgets, 16.6 / 20.1 with the full
+    # ones (offline 16.0 / 12.9); ~15-20 s per upgrade instead of ~5 (the worker process in live use).
+    # One yaw: the reservoir spans the take, its registration is reliable, and a wrong pick cannot
+    # do harm - an upgrade is adopted only when the reservoir fits better under it (_finish_upgrade);
+    # session 9: the same refined MPJPE to 0.1 mm on 7 sessions, upgrades 32-48 -> 22-31 s.
+    # Full bodies: shape prior 0.1 rather than the bootstrap's 1 (partial bodies keep 1: _upgrade_config;
+    # session 26, own script over stream_solve, the
+    # bench's 8 s walk / jump / arms x seeds 0-2 at 20 / 30 / 40 / 50 markers, 36 sessions, the
+    # recording's MPJPE): 27.25 / 14.03 / 9.72 / 9.12 -> 27.29 / 12.80 / 9.94 / 8.93 mm, mean 15.03
+    # -> 14.74 (better on 17, worse on 11); fixed-lag refined 18.53 -> 18.34.  Session 13 had kept 1
+    # here (40 markers, before the revisions and the take-end upgrade, whose reservoir spans the
+    # whole take: 13 sessions 14.85 vs 14.74, the bench's three 11.02 vs 11.63).
+    upgrade_solver: SolverConfig | None = field(default_factory=lambda: SolverConfig(max_hypotheses=1))
     # Longest time gap (s) the upgrade's Stage 2 may interpolate its start across (see _solve_upgrade).
     upgrade_max_interpolation_s: float = 0.35
     # Adopt an upgrade when the reservoir re-solved under it fits better than this times the
@@ -1825,6 +1832,13 @@ class WindowedSolver:
         # 5.8 vs 3.5 mm on a 5 s walk, hence not always).
         n = len(job["markers"])
         base = c.upgrade_solver or c.bootstrap_solver
+        if self.allowed_ids is not None and c.upgrade_solver is not None:
+            # A partial body keeps the bootstrap's Stage-2 shape prior: its few markers see the shape
+            # less (session 26, 12 markers, seed 0, walk / jump / arms: right arm part MPJPE 9.70 /
+            # 28.12 / 18.10 mm with the bootstrap's 1, 10.08 / 29.40 / 19.86 with 0.1; left leg and
+            # shoulder unchanged but for one failed take, 302.7 -> 313.2 mm).
+            base = replace(base, pose_fitting=replace(base.pose_fitting,
+                                                      shape_weight=c.bootstrap_solver.pose_fitting.shape_weight))
         screening = min(base.screening_frames, n)
         if (n / max(screening, 1)) * job["stride"] / (self.rate_hz or 120.0) > c.upgrade_max_interpolation_s:
             screening = n

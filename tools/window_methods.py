@@ -161,6 +161,9 @@ def stream_solve(session_dir: Path, body_model: str | None = None, config=None, 
         if progress is not None:
             progress(i)
     take(solver.flush(), time.perf_counter())
+    # release the worker process now: a bench runs many sessions in one process, and a solver left
+    # to the garbage collector kept its ~430 MB worker alive into the next session's solve
+    solver.close()
     return StreamRun(stamps, float(md.rate_hz), est, ref, solver.betas.double().numpy(), solver.labels, bootstrap_s, steady, busy, cpu,
                      lat_e, lat_r, {**solver.stats, "timing": dict(solver.timing),
                       "lag_frames": solver.config.lag_frames + solver.config.hop_frames - 1}, calls,
