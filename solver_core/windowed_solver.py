@@ -1835,8 +1835,8 @@ class WindowedSolver:
         if self.allowed_ids is not None and c.upgrade_solver is not None:
             # A partial body keeps the bootstrap's Stage-2 shape prior: its few markers see the shape
             # less (session 26, 12 markers, seed 0, walk / jump / arms: right arm part MPJPE 9.70 /
-            # 28.12 / 18.10 mm with the bootstrap's 1, 10.08 / 29.40 / 19.86 with 0.1; left leg and
-            # shoulder unchanged but for one failed take, 302.7 -> 313.2 mm).
+            # 28.12 / 18.10 mm with the bootstrap's 1, 10.08 / 29.40 / 19.86 with 0.1; the walk / jump
+            # left leg and shoulder unchanged; the arms take's left leg fails either way, 302.7 / 313.2 mm).
             base = replace(base, pose_fitting=replace(base.pose_fitting,
                                                       shape_weight=c.bootstrap_solver.pose_fitting.shape_weight))
         screening = min(base.screening_frames, n)

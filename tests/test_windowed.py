@@ -718,6 +718,25 @@ def test_lock_upgrade_keeps_the_body_part(streamed):
     assert s.labels_version == version
 
 
+def test_lock_upgrades_use_the_offline_shape_prior_on_full_bodies_only(streamed):
+    """A full body's upgrade holds the shape to the video as the offline solver does (Stage 2,
+    0.1); a partial body's keeps the bootstrap's paper weight (1), which its few markers need."""
+    from uuomocap.solver_core.pose_fitting import PoseFittingConfig
+    from uuomocap.solver_core.staged_solver import SolverConfig, part_vertex_ids
+
+    s = _clone(streamed)
+    job = {"markers": np.zeros((40, 3, 3)), "stride": 1}
+    assert s.allowed_ids is None
+    full = s._upgrade_config(job)
+    assert full.pose_fitting.shape_weight == SolverConfig().pose_fitting.shape_weight == 0.1
+    assert full.max_hypotheses == 1 and full.ik.smoothness_weight == 0.0
+    model = streamed["model"]
+    s.allowed_ids = part_vertex_ids(model, tuple(model.joint_names.index(n) for n in ("left_hip", "left_knee", "left_ankle")))
+    part = s._upgrade_config(job)
+    assert part.pose_fitting.shape_weight == s.config.bootstrap_solver.pose_fitting.shape_weight == PoseFittingConfig().shape_weight == 1.0
+    assert part.max_hypotheses == 1 and part.ik == full.ik
+
+
 def test_per_frame_model_matches_the_staged_solver_marker_models(streamed):
     """The per-frame solves' numpy body (``_linearize``) predicts the markers as the torch IK's
     ``predicted_markers`` does, for the facet and the smooth-normal offset models."""
