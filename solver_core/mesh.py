@@ -57,13 +57,22 @@ def closest_point_on_triangles(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor
 
     Exact Voronoi-region classification (Ericson, Real-Time Collision Detection, 5.1.5),
     vectorised: every region's answer is computed and the first matching region wins.
+    Works on the x / y / z components separately: reductions over a trailing axis of 3 and
+    selections of 3-vectors cost twice the time of the same arithmetic on (...) tensors (the
+    chamfer stages call this on every evaluation: 4.9 -> 2.5 ms for 60 x 40 x 10 triangles,
+    bit-identical results).
     """
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = (ab * ap).sum(-1), (ac * ap).sum(-1)
-    bp = p - b
-    d3, d4 = (ab * bp).sum(-1), (ac * bp).sum(-1)
-    cp = p - c
-    d5, d6 = (ab * cp).sum(-1), (ac * cp).sum(-1)
+    ax, ay, az = a.unbind(-1)
+    px, py, pz = p.unbind(-1)
+    abx, aby, abz = (t - s for t, s in zip(b.unbind(-1), (ax, ay, az)))
+    acx, acy, acz = (t - s for t, s in zip(c.unbind(-1), (ax, ay, az)))
+
+    def dots(qx, qy, qz):  # (ab . q, ac . q)
+        return abx * qx + aby * qy + abz * qz, acx * qx + acy * qy + acz * qz
+
+    d1, d2 = dots(px - ax, py - ay, pz - az)
+    d3, d4 = dots(*(s - t for s, t in zip((px, py, pz), b.unbind(-1))))
+    d5, d6 = dots(*(s - t for s, t in zip((px, py, pz), c.unbind(-1))))
     va = d3 * d6 - d5 * d4
     vb = d5 * d2 - d1 * d6
     vc = d1 * d4 - d3 * d2
@@ -77,11 +86,11 @@ def closest_point_on_triangles(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor
     denom = va + vb + vc
     v = safe_div(vb, denom)
     w = safe_div(vc, denom)
-    bary = torch.stack([1 - v - w, v, w], -1)
+    u = 1 - v - w
 
     def put(mask, u0, u1, u2):
-        nonlocal bary
-        bary = torch.where(mask[..., None], torch.stack([u0, u1, u2], -1), bary)
+        nonlocal u, v, w
+        u, v, w = torch.where(mask, u0, u), torch.where(mask, u1, v), torch.where(mask, u2, w)
 
     # Regions in reverse order of Ericson's tests so the earliest test has the last word.
     e43, e56 = d4 - d3, d5 - d6
@@ -94,7 +103,7 @@ def closest_point_on_triangles(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor
     put((vc <= 0) & (d1 >= 0) & (d3 <= 0), 1 - vab, vab, zero)                # edge AB
     put((d3 >= 0) & (d4 <= d3), zero, one, zero)                              # vertex B
     put((d1 <= 0) & (d2 <= 0), one, zero, zero)                               # vertex A
-    return bary
+    return torch.stack([u, v, w], -1)
 
 
 # cdist's matmul formulation loses ~1e-4 m to cancellation; bounds are lowered by this much
