@@ -90,6 +90,10 @@ class PartMatchingConfig:
     partial_alternatives: int = 3
     # Bound on the enumeration: never test more candidates than this (after pruning).
     max_candidates: int = 400
+    # Beyond the paper: the part when it is already known (joint indices; None = search).  The
+    # near-online lock upgrades re-solve the part their bootstrap chose: another part's result
+    # would be refused anyway (WindowedSolver._finish_upgrade), and searching cost them the time.
+    part_joints: tuple[int, ...] | None = None
     # Energies measure distances in this unit (regularizers.DISTANCE_UNIT_M explains why it matters).
     distance_unit_m: float = DISTANCE_UNIT_M
 
@@ -337,12 +341,18 @@ def match_markers_to_part(
     up_np = up.double().numpy()
     ratio = marker_to_body_volume_ratio(mk.double().numpy(), vis.numpy(), rest.vertices.double().numpy(), up_np)
     full_body = ratio > config.full_body_volume_ratio if force_full_body is None else bool(force_full_body)
+    if config.part_joints is not None:
+        full_body = False
     k = int(len(np.unique(cluster_labels)))
     dominant = vertex_dominant_joint(model)
     dominant = torch.as_tensor(dominant, dtype=torch.long)
     n_joints = int(model.parents.shape[0])
     if full_body:
         candidates = [tuple(range(n_joints))]
+    elif config.part_joints is not None:
+        if not config.part_joints or not all(0 <= j < n_joints for j in config.part_joints):
+            raise ValueError(f"part_joints must be joint indices of the model (0..{n_joints - 1}), got {config.part_joints}")
+        candidates = [tuple(int(j) for j in config.part_joints)]
     else:
         size = max(1, min(max(k, config.min_part_joints), config.max_part_joints, n_joints))
         candidates = candidate_part_joints(model.parents, size, config.prune_overlap, config.max_candidates)

@@ -744,6 +744,7 @@ class WindowedSolver:
         self.face_ids = None
         self.bary = None
         self.allowed_ids = None
+        self.part_joints: tuple[int, ...] | None = None  # the locked part's joints (None: full body)
         self.labels_version = 0
         self._boot: deque | None = None  # frames collected for a (re-)bootstrap
         self._pending: deque = deque()  # estimated, not yet final (bounded by lag + hop)
@@ -1190,6 +1191,10 @@ class WindowedSolver:
     def _adopt_lock(self, res) -> None:
         """Lock shape, yaw, camera tilt and correspondence from a staged-solver result."""
         lock = self._lock_from(res)
+        diag = res.diagnostics
+        # the part the lock upgrades re-solve (None: a full body)
+        self.part_joints = (tuple(self.model.joint_names.index(n) for n in diag.get("part_joints", []))
+                            if not diag.get("full_body", True) else None)
         # the solver estimated the video camera's tilt; every later prior root gets the same tilt,
         # and priors already attached to frames in flight carry the old one: swap it
         swap = lock[4] @ self.camera_tilt.T
@@ -1832,6 +1837,12 @@ class WindowedSolver:
         # 5.8 vs 3.5 mm on a 5 s walk, hence not always).
         n = len(job["markers"])
         base = c.upgrade_solver or c.bootstrap_solver
+        # the bootstrap decided full or partial body and the part; an upgrade refines that lock and
+        # never moves the markers to another part (_finish_upgrade), so it does not search for one
+        if self.part_joints is None:
+            base = replace(base, force_full_body=True)
+        else:
+            base = replace(base, force_full_body=None, matching=replace(base.matching, part_joints=self.part_joints))
         if self.allowed_ids is not None and c.upgrade_solver is not None:
             # A partial body keeps the bootstrap's Stage-2 shape prior: its few markers see the shape
             # less (session 26, 12 markers, seed 0, walk / jump / arms: right arm part MPJPE 9.70 /

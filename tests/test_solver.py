@@ -463,3 +463,35 @@ def test_the_offline_solver_trusts_a_decisive_registration_on_full_bodies_only()
     everywhere = SolverConfig(decisive_registration_ratio=3.0)
     assert _decisive_ratio(everywhere, full) == 3.0 and _decisive_ratio(everywhere, part) == 3.0
     assert _decisive_ratio(solver_config_for("uuo-paper"), full) is None
+
+
+def test_a_known_part_is_solved_without_searching_for_one(tmp_path):
+    """``PartMatchingConfig.part_joints`` (the near-online lock upgrades: their bootstrap chose the
+    part): matching tests that one candidate, even the mirror leg of the one the markers are on,
+    and says so; joints the model does not have are refused."""
+    torch.set_num_threads(1)
+    from uuomocap.solver_core.parts import PART_JOINTS
+    from uuomocap.solver_core.staged_solver import SolverConfig, solve
+    from uuomocap.solver_methods import inputs_from_session, load_models
+
+    session = _make_session(tmp_path, "leg", motion="walk", duration_s=2.0, rate_hz=30.0, n_markers=12, part="left_leg", seed=0)
+    inp = inputs_from_session(session)
+    model, chamfer_model = load_models(inp.body_model)
+
+    def matched(part_joints, **over):
+        cfg = _fast_config(stop_after="matching", **over)
+        cfg = replace(cfg, matching=replace(cfg.matching, part_joints=part_joints))
+        return solve(inp.markers, inp.visible, inp.rate_hz, inp.up_axis, inp.prior, inp.shape_prior, model, chamfer_model,
+                     cfg).diagnostics
+
+    searched = matched(None)
+    assert searched["full_body"] is False and searched["part_candidates_tested"] > 1
+    right = tuple(PART_JOINTS["right_leg"])
+    # the volume test's decision (partial) and an explicit full-body request both give way to it
+    for over in ({}, {"force_full_body": True}):
+        d = matched(right, **over)
+        assert d["full_body"] is False and d["part_candidates_tested"] == 1
+        assert sorted(d["part_joints"]) == sorted(model.joint_names[j] for j in right)
+    with pytest.raises(ValueError, match="part_joints"):
+        matched((0, 99))
+    assert SolverConfig().matching.part_joints is None  # the offline solver searches

@@ -702,15 +702,17 @@ def test_recheck_keeps_a_good_lock(streamed):
 
 
 def test_lock_upgrade_keeps_the_body_part(streamed):
-    """An upgrade refines the lock, it does not move the markers to another part: a lock on a
-    partial body (here: the streamed full-body lock relabelled as a left leg) refuses an upgrade
-    whose solve decided otherwise (full body), and keeps its points."""
+    """An upgrade refines the lock, it does not move the markers to another part: its solve is
+    told the locked part (``_upgrade_config``), and a result on another part is refused whatever
+    its fit - here the streamed full-body lock relabelled as a left leg whose part the upgrade
+    does not know (so it solves a full body), which keeps its points."""
     from uuomocap.solver_core.staged_solver import part_vertex_ids
 
     s = _mislocked_clone(streamed)
     model = streamed["model"]
     leg = tuple(model.joint_names.index(n) for n in ("left_hip", "left_knee", "left_ankle"))
     s.allowed_ids = part_vertex_ids(model, leg)
+    assert s.part_joints is None
     faces, version = s.face_ids.copy(), s.labels_version
     s._upgrade_lock()
     assert s.stats["upgrades"] == 1 and s.stats["upgrades_other_part"] == 1 and s.stats["upgrades_rejected"] == 1
@@ -720,7 +722,8 @@ def test_lock_upgrade_keeps_the_body_part(streamed):
 
 def test_lock_upgrades_use_the_offline_shape_prior_on_full_bodies_only(streamed):
     """A full body's upgrade holds the shape to the video as the offline solver does (Stage 2,
-    0.1); a partial body's keeps the bootstrap's paper weight (1), which its few markers need."""
+    0.1); a partial body's keeps the bootstrap's paper weight (1), which its few markers need.
+    Both solve the body the bootstrap decided on: a full body, or the locked part."""
     from uuomocap.solver_core.pose_fitting import PoseFittingConfig
     from uuomocap.solver_core.staged_solver import SolverConfig, part_vertex_ids
 
@@ -730,11 +733,15 @@ def test_lock_upgrades_use_the_offline_shape_prior_on_full_bodies_only(streamed)
     full = s._upgrade_config(job)
     assert full.pose_fitting.shape_weight == SolverConfig().pose_fitting.shape_weight == 0.1
     assert full.max_hypotheses == 1 and full.ik.smoothness_weight == 0.0
+    # the bootstrap's decision stands: a full body stays one, a part is solved as that part
+    assert full.force_full_body is True and full.matching.part_joints is None
     model = streamed["model"]
-    s.allowed_ids = part_vertex_ids(model, tuple(model.joint_names.index(n) for n in ("left_hip", "left_knee", "left_ankle")))
+    leg = tuple(model.joint_names.index(n) for n in ("left_hip", "left_knee", "left_ankle"))
+    s.allowed_ids, s.part_joints = part_vertex_ids(model, leg), leg
     part = s._upgrade_config(job)
     assert part.pose_fitting.shape_weight == s.config.bootstrap_solver.pose_fitting.shape_weight == PoseFittingConfig().shape_weight == 1.0
     assert part.max_hypotheses == 1 and part.ik == full.ik
+    assert part.matching.part_joints == leg and part.force_full_body is None
 
 
 def test_per_frame_model_matches_the_staged_solver_marker_models(streamed):
