@@ -1174,10 +1174,17 @@ class WindowedSolver:
     # segment (the growth rule alone would fire on a handful of frames after a short bootstrap)
     _MIN_UPGRADE_FRAMES = 8
 
+    def _part_joints_of(self, res) -> tuple[int, ...] | None:
+        """Joint indices of the part a staged-solver result placed the markers on (None: a full body)."""
+        diag = res.diagnostics
+        if diag.get("full_body", True):
+            return None
+        return tuple(self.model.joint_names.index(n) for n in diag.get("part_joints", []))
+
     def _lock_from(self, res) -> tuple:
         """The lock (``_LOCK_FIELDS``) a staged-solver result implies."""
         diag = res.diagnostics
-        joints = tuple(self.model.joint_names.index(n) for n in diag.get("part_joints", [])) if not diag.get("full_body", True) else ()
+        joints = self._part_joints_of(res) or ()
         return (res.attachment.face_ids.numpy().astype(np.int64).copy(), res.attachment.bary.double().numpy().copy(),
                 res.params.betas.detach().clone(), float(res.params.yaw),
                 np.asarray(diag.get("camera_tilt", np.eye(3)), dtype=np.float64),
@@ -1191,10 +1198,7 @@ class WindowedSolver:
     def _adopt_lock(self, res) -> None:
         """Lock shape, yaw, camera tilt and correspondence from a staged-solver result."""
         lock = self._lock_from(res)
-        diag = res.diagnostics
-        # the part the lock upgrades re-solve (None: a full body)
-        self.part_joints = (tuple(self.model.joint_names.index(n) for n in diag.get("part_joints", []))
-                            if not diag.get("full_body", True) else None)
+        self.part_joints = self._part_joints_of(res)  # the part the lock upgrades re-solve
         # the solver estimated the video camera's tilt; every later prior root gets the same tilt,
         # and priors already attached to frames in flight carry the old one: swap it
         swap = lock[4] @ self.camera_tilt.T
