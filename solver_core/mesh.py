@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 
 __all__ = ["face_normals", "vertex_normals", "face_areas", "closest_point_on_mesh",
-           "closest_point_on_triangles", "sample_surface"]
+           "closest_point_on_triangles", "closest_point_on_vertex_fans", "sample_surface"]
 
 
 def _batched(vertices: torch.Tensor) -> tuple[torch.Tensor, bool]:
@@ -62,17 +62,23 @@ def closest_point_on_triangles(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor
     chamfer stages call this on every evaluation: 4.9 -> 2.5 ms for 60 x 40 x 10 triangles,
     bit-identical results).
     """
-    ax, ay, az = a.unbind(-1)
-    px, py, pz = p.unbind(-1)
-    abx, aby, abz = (t - s for t, s in zip(b.unbind(-1), (ax, ay, az)))
-    acx, acy, acz = (t - s for t, s in zip(c.unbind(-1), (ax, ay, az)))
+    return torch.stack(_closest_point_components(p.unbind(-1), a.unbind(-1), b.unbind(-1), c.unbind(-1)), -1)
+
+
+def _closest_point_components(p, a, b, c) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``closest_point_on_triangles`` on components: p, a, b, c are (x, y, z) triples of
+    broadcastable tensors; returns the barycentric (u, v, w)."""
+    ax, ay, az = a
+    px, py, pz = p
+    abx, aby, abz = (t - s for t, s in zip(b, (ax, ay, az)))
+    acx, acy, acz = (t - s for t, s in zip(c, (ax, ay, az)))
 
     def dots(qx, qy, qz):  # (ab . q, ac . q)
         return abx * qx + aby * qy + abz * qz, acx * qx + acy * qy + acz * qz
 
     d1, d2 = dots(px - ax, py - ay, pz - az)
-    d3, d4 = dots(*(s - t for s, t in zip((px, py, pz), b.unbind(-1))))
-    d5, d6 = dots(*(s - t for s, t in zip((px, py, pz), c.unbind(-1))))
+    d3, d4 = dots(*(s - t for s, t in zip((px, py, pz), b)))
+    d5, d6 = dots(*(s - t for s, t in zip((px, py, pz), c)))
     va = d3 * d6 - d5 * d4
     vb = d5 * d2 - d1 * d6
     vc = d1 * d4 - d3 * d2
@@ -103,7 +109,40 @@ def closest_point_on_triangles(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor
     put((vc <= 0) & (d1 >= 0) & (d3 <= 0), 1 - vab, vab, zero)                # edge AB
     put((d3 >= 0) & (d4 <= d3), zero, one, zero)                              # vertex B
     put((d1 <= 0) & (d2 <= 0), one, zero, zero)                               # vertex A
-    return torch.stack([u, v, w], -1)
+    return u, v, w
+
+
+def closest_point_on_vertex_fans(points: torch.Tensor, vertices: torch.Tensor, vertex_ids: torch.Tensor,
+                                 faces: torch.Tensor, vertex_faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """For every point, the closest point of the faces around one given vertex of its frame's mesh.
+
+    points (T, M, 3); vertices (T, N, 3); vertex_ids (T, M) long (e.g. each point's nearest
+    vertex); faces (F, 3); vertex_faces (N, K) from ``chamfer.vertex_face_table`` (each vertex's
+    faces, padded by repeating its first).  Returns (face ids (T, M) long, barycentric (T, M, 3)):
+    the first face with the smallest distance, in table order - the same answer as testing all K
+    columns, but only each vertex's own faces are tested (the low-resolution body: 6.0 per vertex
+    on average of K = 10), on x / y / z components (the chamfer stages call this on every
+    evaluation: 60 frames x 40 markers 5.1-7.8 -> 3.0 ms).
+    """
+    T, N = vertices.shape[:2]
+    M = points.shape[1]
+    vid = vertex_ids.reshape(-1)
+    count = torch.bincount(faces.reshape(-1), minlength=N)[vid]  # (T*M,) faces around each vertex
+    rows = torch.repeat_interleave(torch.arange(T * M), count)  # one row per (point, face) pair
+    first = torch.cumsum(count, 0) - count
+    col = torch.arange(rows.numel()) - first[rows]
+    face = vertex_faces[vid[rows], col]
+    corner = (faces[face] + ((rows // M) * N)[:, None]).unbind(-1)  # into the flattened (T*N) vertices
+    comp = vertices.reshape(-1, 3).unbind(-1)
+    tri = [tuple(x[k] for x in comp) for k in corner]  # a, b, c as (x, y, z) triples
+    p = tuple(points.reshape(-1, 3)[rows].unbind(-1))
+    u, v, w = _closest_point_components(p, *tri)
+    d2 = sum((u * a + v * b + w * c - q) ** 2 for a, b, c, q in zip(*tri, p))
+    # back to one row per point, padded with +inf: argmin picks the first smallest, as over K columns
+    table = torch.full((T * M, vertex_faces.shape[1]), float("inf"), dtype=d2.dtype)
+    table[rows, col] = d2
+    best = first + table.argmin(1)
+    return face[best].reshape(T, M), torch.stack([u[best], v[best], w[best]], -1).reshape(T, M, 3)
 
 
 # cdist's matmul formulation loses ~1e-4 m to cancellation; bounds are lowered by this much

@@ -22,7 +22,7 @@ import torch
 from uuomocap.solver_core.body_params import BodyParams, FreeParameters, apply_root_offset, pose_body, tilt_matrix
 from uuomocap.solver_core import lbs
 from uuomocap.solver_core.chamfer import NearestTargetCache, nearest_indices, vertex_face_table
-from uuomocap.solver_core.mesh import closest_point_on_triangles
+from uuomocap.solver_core.mesh import closest_point_on_vertex_fans
 from uuomocap.solver_core.optimization import LBFGSConfig, OptimizationReport, run_lbfgs
 from uuomocap.solver_core.regularizers import DISTANCE_UNIT_M, pose_prior_energy, shape_prior_energy, temporal_smoothness_energy
 
@@ -208,16 +208,7 @@ def surface_chamfer_to_body(
         tgt = allv if target_vertex_ids.numel() == allv.shape[1] else allv[:, target_vertex_ids]
         search = nearest_indices if nearest_cache is None else nearest_cache.nearest
         nearest = target_vertex_ids[search(mk, tgt)]  # (T,M) vertex ids
-        cand = vertex_faces[nearest]  # (T,M,K) face ids
-        corner_ids = model.faces[cand]  # (T,M,K,3)
-        t_idx = torch.arange(frames)[:, None, None, None]
-        tri = allv[t_idx, corner_ids]  # (T,M,K,3,3)
-        p = mk[:, :, None, :]
-        bary_all = closest_point_on_triangles(p.expand_as(tri[..., 0, :]), tri[..., 0, :], tri[..., 1, :], tri[..., 2, :])
-        q_all = (bary_all[..., None] * tri).sum(-2)
-        k_best = ((q_all - p) ** 2).sum(-1).argmin(dim=2)  # (T,M)
-        face = torch.gather(cand, 2, k_best[..., None])[..., 0]
-        bary = torch.gather(bary_all, 2, k_best[..., None, None].expand(-1, -1, 1, 3))[:, :, 0]
+        face, bary = closest_point_on_vertex_fans(mk, allv, nearest, model.faces, vertex_faces)  # (T,M), (T,M,3)
         used, inverse = torch.unique(model.faces[face], return_inverse=True)  # inverse (T,M,3)
     sub = pose_body(model, root, body, trans, betas, yaw, up, lbs.SurfacePoints.from_vertex_ids(used), root_offset)
     verts = sub.vertices / unit

@@ -12,6 +12,7 @@ from uuomocap.solver_core.lbs import SurfacePoints, forward
 from uuomocap.solver_core.mesh import (
     closest_point_on_mesh,
     closest_point_on_triangles,
+    closest_point_on_vertex_fans,
     face_areas,
     face_normals,
     sample_surface,
@@ -69,6 +70,29 @@ def test_closest_point_matches_brute_force(low):
     sf, sb = sample_surface(verts[0], low.faces, 5000, g)
     samples = (verts[0][low.faces[sf]] * sb[..., None]).sum(1)
     assert (torch.cdist(pts[0], samples).min(1).values >= dist[0] - 1e-6).all()
+
+
+def test_closest_point_on_vertex_fans_tests_each_vertex_fan_like_every_column(low):
+    # The chamfer stages' face pick: only each vertex's own faces are tested; the answer must be the
+    # one from testing every column of the padded vertex-face table (first smallest distance wins).
+    from uuomocap.solver_core.chamfer import vertex_face_table
+
+    g = torch.Generator().manual_seed(3)
+    verts = forward(low, torch.randn(1, 16, generator=g), torch.randn(3, 24, 3, generator=g) * 0.3).vertices  # (3,N,3)
+    table = vertex_face_table(low.faces, low.num_vertices)
+    vid = torch.randint(0, low.num_vertices, (3, 25), generator=g)
+    pts = verts[torch.arange(3)[:, None], vid] + torch.randn(3, 25, 3, generator=g) * 0.02
+    face, bary = closest_point_on_vertex_fans(pts, verts, vid, low.faces, table)
+    cand = table[vid]  # (3,25,K)
+    tri = verts[torch.arange(3)[:, None, None, None], low.faces[cand]]  # (3,25,K,3,3)
+    q = pts[:, :, None]
+    bb = closest_point_on_triangles(q.expand_as(tri[..., 0, :]), tri[..., 0, :], tri[..., 1, :], tri[..., 2, :])
+    best = (((bb[..., None] * tri).sum(-2) - q) ** 2).sum(-1).argmin(2, keepdim=True)
+    assert torch.equal(face, torch.gather(cand, 2, best)[..., 0])
+    assert torch.equal(bary, torch.gather(bb, 2, best[..., None].expand(-1, -1, 1, 3))[:, :, 0])
+    # every answer is a face of its vertex, with a valid barycentric point
+    assert (low.faces[face] == vid[..., None]).any(-1).all()
+    assert (bary >= 0).all() and torch.allclose(bary.sum(-1), torch.ones(3, 25))
 
 
 def test_closest_point_distance_is_differentiable(low):
