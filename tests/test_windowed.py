@@ -156,6 +156,29 @@ def test_bootstrap_falls_back_to_this_process_when_the_worker_died(streamed):
     np.testing.assert_array_equal(res.attachment.face_ids.numpy(), expected.attachment.face_ids.numpy())
 
 
+def test_the_bootstrap_stage_2_tries_the_whole_quasi_newton_step_first(streamed):
+    # lr is only the first step each strong-Wolfe line search tries (optimization.run_lbfgs): at the
+    # paper's 0.1 the line search accepts a tenth of the quasi-Newton step and the fit stops on the
+    # relative-improvement test far above the minimum the bootstrap's 1.0 reaches
+    md = streamed["md"]
+    sel = np.arange(0, 60, 2)  # 2 s at 15 Hz
+    losses = {}
+    for lr in (0.1, 1.0):
+        s = _clone(streamed)
+        boot = s.config.bootstrap_solver
+        if lr != 1.0:
+            assert boot.pose_fitting.lbfgs.lr == boot.screening_pose_fitting.lbfgs.lr == 1.0
+            boot = replace(boot, pose_fitting=replace(boot.pose_fitting, lbfgs=replace(boot.pose_fitting.lbfgs, lr=lr)),
+                           screening_pose_fitting=replace(boot.screening_pose_fitting,
+                                                          lbfgs=replace(boot.screening_pose_fitting.lbfgs, lr=lr)))
+        s.config = replace(s.config, bootstrap_solver=boot, bootstrap_alternatives=())
+        prior, shape, _ = s._prior_window(np.asarray(md.stamps_ns)[sel])
+        res = s._solve_bootstrap_window(md.positions[sel], md.visible[sel], md.rate_hz / 2, prior, shape)
+        losses[lr] = res.diagnostics["stage_losses"]["stage2"]
+    print(f"\nStage-2 energy at initial step 0.1: {losses[0.1]:.2f}, 1.0: {losses[1.0]:.2f}")
+    assert losses[1.0] < 0.9 * losses[0.1], losses
+
+
 def test_refined_accuracy_close_to_offline(streamed, session):
     from uuomocap.solver_core.metrics import mpjpe, mpjve
     from uuomocap.solver_core.windowed_solver import fast_bootstrap_config
