@@ -146,17 +146,14 @@ def fast_bootstrap_config() -> SolverConfig:
         # where the refined output's error comes from (the bootstrap's lock held fixed, 40 markers,
         # 8 s walk / jump / arms and 4 seed-1 sessions: mean refined MPJPE 19.5 -> 17.7 mm; 45
         # instead of 60 chamfer frames 19.6).
-        # Stage 2 starts each line search at step 1.0 rather than the paper's lr 0.1.  Our L-BFGS
-        # has a strong-Wolfe line search (optimization.run_lbfgs), where lr is only the first step
-        # tried; the lenient curvature test accepts 0.1 of the quasi-Newton step, so the fit
-        # crawls and stops on the relative-improvement test far above its minimum.  Session 28
-        # (40 markers, the bench's 8 s walk / jump / arms x seeds 0-2, each start alone): final
-        # Stage-2 energy 10.1-20.5 -> 5.7-13.0, the winner's Stage 2 in 27-83 instead of 41-109
-        # evaluations; the lock held fixed, mean refined MPJPE 13.64 -> 13.24 mm (5 better, 4 worse),
-        # bootstrap wall mean 10.25 -> 9.52 s.
-        screening_pose_fitting=replace(c.pose_fitting, lbfgs=replace(c.pose_fitting.lbfgs, max_iterations=40, lr=1.0)),
+        # Stage 2 starts each line search at step 1.0 as offline (SolverConfig.pose_fitting says why).
+        # Session 28 (40 markers, the bench's 8 s walk / jump / arms x seeds 0-2, each start alone,
+        # against the paper's 0.1): final Stage-2 energy 10.1-20.5 -> 5.7-13.0, the winner's Stage 2
+        # in 27-83 instead of 41-109 evaluations; the lock held fixed, mean refined MPJPE 13.64 ->
+        # 13.24 mm (5 better, 4 worse), bootstrap wall mean 10.25 -> 9.52 s.
+        screening_pose_fitting=replace(c.pose_fitting, lbfgs=replace(c.pose_fitting.lbfgs, max_iterations=40)),
         screening_ik=replace(c.ik, lbfgs=replace(c.ik.lbfgs, max_iterations=40), robust_scale_m=None),
-        pose_fitting=replace(c.pose_fitting, lbfgs=replace(c.pose_fitting.lbfgs, max_iterations=100, lr=1.0)),
+        pose_fitting=replace(c.pose_fitting, lbfgs=replace(c.pose_fitting.lbfgs, max_iterations=100)),
         ik=replace(c.ik, lbfgs=replace(c.ik.lbfgs, max_iterations=100)),
         matching=replace(c.matching, lbfgs=replace(c.matching.lbfgs, max_iterations=40), frames=24),
         # Stage 5's per-marker point choice (placement_selection: a marker may take the point found

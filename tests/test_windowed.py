@@ -160,6 +160,12 @@ def test_the_bootstrap_stage_2_tries_the_whole_quasi_newton_step_first(streamed)
     # lr is only the first step each strong-Wolfe line search tries (optimization.run_lbfgs): at the
     # paper's 0.1 the line search accepts a tenth of the quasi-Newton step and the fit stops on the
     # relative-improvement test far above the minimum the bootstrap's 1.0 reaches
+    from uuomocap.solver_core.pose_fitting import PoseFittingConfig
+    from uuomocap.solver_core.staged_solver import SolverConfig
+
+    # the offline solver (and so the lock upgrades) start there too; the stage's own default stays
+    # the paper's 0.1, which the published-method ablation (uuo-paper) runs
+    assert SolverConfig().pose_fitting.lbfgs.lr == 1.0 and PoseFittingConfig().lbfgs.lr == 0.1
     md = streamed["md"]
     sel = np.arange(0, 60, 2)  # 2 s at 15 Hz
     losses = {}
