@@ -761,6 +761,9 @@ def test_lock_upgrades_use_the_offline_shape_prior_on_full_bodies_only(streamed)
     assert s.allowed_ids is None
     full = s._upgrade_config(job)
     assert full.pose_fitting.shape_weight == SolverConfig().pose_fitting.shape_weight == 0.1
+    # ...but the bootstrap's Stage-2 pose prior (the paper's), not the offline solver's stronger one
+    assert full.pose_fitting.pose_weight == s.config.bootstrap_solver.pose_fitting.pose_weight == PoseFittingConfig().pose_weight
+    assert SolverConfig().pose_fitting.pose_weight > PoseFittingConfig().pose_weight
     assert full.max_hypotheses == 1 and full.ik.smoothness_weight == 0.0
     # the bootstrap's decision stands: a full body stays one, a part is solved as that part
     assert full.force_full_body is True and full.matching.part_joints is None
