@@ -348,7 +348,7 @@ class WindowedSolverConfig:
     # whole take: 13 sessions 14.85 vs 14.74, the bench's three 11.02 vs 11.63).
     # Stage-2 pose prior: the paper's 1, as the bootstrap, not the offline 2 (session 29, the bench's replay, 36 sessions,
     # recording MPJPE at 20 / 30 / 40 / 50 markers: 24.4 / 13.1 / 9.2 / 8.6 mm with 1, 25.0 / 13.3 / 8.8 / 8.9 with 2).
-    upgrade_solver: SolverConfig | None = field(default_factory=lambda: upgrade_solver_config())
+    upgrade_solver: SolverConfig | None = field(default_factory=upgrade_solver_config)
     # Longest time gap (s) the upgrade's Stage 2 may interpolate its start across (see _solve_upgrade).
     upgrade_max_interpolation_s: float = 0.35
     # Adopt an upgrade when the reservoir re-solved under it fits better than this times the
