@@ -249,14 +249,16 @@ def test_the_take_end_upgrades_the_lock_on_the_whole_take_before_the_revision(st
     s.config = replace(s.config, revise_at_end=True, upgrade_at_end_growth=1.1)
     ring = [f.index for f in s._refined_ring]
     fits_before = len(s.stats.get("upgrade_fit_mm", []))
-    generation = s._lock_generation
+    # an adoption keeps the lock generation (that counts bootstraps) and replaces the shape
+    rejected, betas = s.stats.get("upgrades_rejected", 0), s.betas.clone()
     out = s.flush()
     # one upgrade on the reservoir (which now spans the take), judged like every upgrade ...
     assert s.stats["upgrades_at_end"] == 1 and s.stats["upgrade_at_end_s"] > 0
     assert len(s.stats["upgrade_fit_mm"]) == fits_before + 1
     current, candidate = s.stats["upgrade_fit_mm"][-1]
-    adopted = s._lock_generation != generation
+    adopted = s.stats.get("upgrades_rejected", 0) == rejected
     assert adopted == (candidate < current), (current, candidate, adopted)
+    assert adopted != torch.equal(s.betas, betas)
     # ... then the ring revised once, under the lock the take ends with (no second revision queued
     # by the adoption)
     assert [r.frame_index for r in out] == ring and {r.kind for r in out} == {"revised"}
