@@ -156,8 +156,9 @@ class Solver(Node):
         self._publish(results)
         st = self.solver.stats
         if results and ("upgrade_at_end_s" in st or "revise_at_end_s" in st):  # why the last frames came late
-            self.log.info("take end: lock upgrade %s, %d frames revised in %.1f s", "%.1f s" % st["upgrade_at_end_s"]
-                          if "upgrade_at_end_s" in st else "skipped", sum(r.kind == "revised" for r in results),
+            self.log.info("take end: lock upgrade %s, %d markers re-assigned, %d frames revised in %.1f s",
+                          "%.1f s" % st["upgrade_at_end_s"] if "upgrade_at_end_s" in st else "skipped",
+                          st.get("reassigned_at_end", 0), sum(r.kind == "revised" for r in results),
                           st.get("upgrade_at_end_s", 0.0) + st.get("revise_at_end_s", 0.0))
 
     def teardown(self) -> None:

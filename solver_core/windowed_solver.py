@@ -412,6 +412,19 @@ class WindowedSolverConfig:
     # worse (the 30-marker arms: fit 1.44 -> 1.30 mm under the new lock, MPJPE up), seven unchanged
     # (refused, or no better).  Costs one upgrade solve at the end (8 s takes at 30 Hz: 10-17 s).
     upgrade_at_end_growth: float = 1.1
+    # Beyond the paper: before the end-of-take revision, Stage 3 once more on the whole ring (every
+    # marker's surface point searched anew over the whole allowed surface, its mean distance over up
+    # to ``CorrespondenceConfig.frames`` of the ring's frames) under the ring's poses revised under the
+    # final lock - the paper's Stage 5 (repeat Stages 3-4) on the take's frames rather than on the
+    # reservoir's or the re-checks' recent ones.  The lock's points came from the reservoir (spread,
+    # every k-th frame) and the re-checks (48 recent frames, taken only when 3 mm better); session
+    # 31 measured them against the truth (rest-pose distance to the true attachment, 30 markers,
+    # walk / jump / arms x seeds 0-2): median 6.3-13.9 mm where the offline solver's on the same
+    # takes are 4.7-14.0 (6 of 9 better offline).  Recording MPJPE (own script over ``stream_solve``,
+    # the same 9 sessions, mean): 13.06 -> 12.85 mm, better on all 9 (offline 11.70); a local search
+    # (Stage 5's ``refine_radius_m`` around each point) instead 13.38 (4 worse); a second round
+    # changes nothing.  Costs one more revision of the ring and one Stage 3 when the take ends.
+    reassign_at_end: bool = True
     # Ring sizes: recent frames kept for re-assignment (frames), priors kept (messages).
     history_frames: int = 64
     prior_buffer: int = 512
@@ -898,7 +911,7 @@ class WindowedSolver:
     def flush(self) -> list[WindowResult]:
         """End of stream: bootstrap on what is there if never locked, then finalise every frame."""
         out: list[WindowResult] = []
-        for key in ("upgrade_at_end_s", "revise_at_end_s"):  # they describe this flush, not an earlier take's
+        for key in ("upgrade_at_end_s", "revise_at_end_s", "reassigned_at_end"):  # this flush's, not an earlier take's
             self.stats.pop(key, None)
         if self._revision is not None and "future" in self._revision:
             # the worker runs it ahead of any upgrade queued after it: wait for it, then cancel that
@@ -941,20 +954,52 @@ class WindowedSolver:
         frames = [f for f in self._refined_ring or () if f.video_prior]
         if not self.has_prior or len(frames) < 2:
             return []
+        t0 = time.perf_counter()
+        if self.config.reassign_at_end and len(frames) >= self._MIN_UPGRADE_FRAMES:
+            self._reassign_on_ring(frames)
         diff = np.stack([f.theta - f.prior for f in frames])
         diff[:, :3] = 0.0  # the root keeps its own prior (the mean term is over the body's joints)
         shift = diff.mean(axis=0)
         for f in frames:
             f.prior = f.prior - shift
-        t0 = time.perf_counter()
-        self._start_revision("revisions_at_end")
-        out = self._worker_revision(wait=True) if self._revision is not None and "future" in self._revision else []
-        out += self._revise_all()
+        out = self._revise_ring("revisions_at_end")
         # the take is over and its frames are final: a second flush (end of stream, then stop) or a
         # later upgrade has nothing left to revise, and the shift is not applied twice
         self._refined_ring.clear()
         self.stats["revise_at_end_s"] = round(time.perf_counter() - t0, 3)
         return out
+
+    def _revise_ring(self, counter: str) -> list[WindowResult]:
+        """The whole ring revised under the current lock, waited for (in the worker when live)."""
+        self._start_revision(counter)
+        out = self._worker_revision(wait=True) if self._revision is not None and "future" in self._revision else []
+        return out + self._revise_all()
+
+    def _reassign_on_ring(self, frames: list[_Frame]) -> None:
+        """Stage 3 for every assigned marker over the ring's frames (``reassign_at_end``), their
+        poses first revised under the final lock (the ring's results are revised again after)."""
+        self._revise_ring("revisions_before_reassign")
+        which = np.flatnonzero(self.face_ids >= 0)
+        if len(which) == 0:
+            return
+        markers = torch.as_tensor(np.stack([f.markers[which] for f in frames]), dtype=torch.float32)
+        vis = torch.as_tensor(np.stack([f.visible[which] for f in frames]))
+        theta = torch.as_tensor(np.stack([f.theta for f in frames]), dtype=torch.float32)
+        params = BodyParams(theta[:, :3].contiguous(), theta[:, 3:].reshape(-1, 23, 3).contiguous(),
+                            torch.as_tensor(np.stack([f.trans for f in frames]), dtype=torch.float32), self.betas,
+                            torch.tensor(self.yaw, dtype=torch.float32))
+        att = find_marker_surface_points(self.model, markers, vis, params, self.up, self.allowed_ids,
+                                         self.config.bootstrap_solver.correspondence, self._vertex_faces)
+        faces = att.face_ids.numpy()
+        ok = faces >= 0
+        if not ok.any():
+            return
+        moved = ok & (faces != self.face_ids[which])
+        self.face_ids[which[ok]] = faces[ok]
+        self.bary[which[ok]] = att.bary.double().numpy()[ok]
+        self.stats["reassigned_at_end"] = int(moved.sum())  # markers that moved to another face
+        self.labels_version += 1
+        self._prepare_lock()
 
     def __getstate__(self) -> dict:
         """Copies (``copy.deepcopy``, pickles) leave the worker process and thread pool behind: a

@@ -276,6 +276,30 @@ def test_the_take_end_upgrades_the_lock_on_the_whole_take_before_the_revision(st
         WindowedSolverConfig(upgrade_at_end_growth=-1.0)
 
 
+def test_the_take_end_reassigns_the_markers_on_the_whole_ring(streamed):
+    """Stage 3 once more over the ring before the end-of-take revision: six markers whose locked
+    points were swapped among them after the stream get their own points back; without it they
+    keep the wrong ones."""
+    gt = streamed["gt"]
+    s = _mislocked_clone(streamed)
+    s.config = replace(s.config, revise_at_end=True)
+    ring = [f.index for f in s._refined_ring]
+    wrong_mm, version = _attach_error_mm(s, gt, streamed["model"]), s.labels_version
+    out = s.flush()
+    fixed_mm = _attach_error_mm(s, gt, streamed["model"])
+    assert s.stats["reassigned_at_end"] >= 6 and s.labels_version > version
+    # the ring comes out once, revised under the repaired points
+    assert [r.frame_index for r in out] == ring and all(r.labels_version == s.labels_version for r in out)
+    kept = _mislocked_clone(streamed)
+    kept.config = replace(kept.config, revise_at_end=True, reassign_at_end=False)
+    kept.flush()
+    kept_mm = _attach_error_mm(kept, gt, streamed["model"])
+    good_mm = _attach_error_mm(_clone(streamed), gt, streamed["model"])
+    print(f"\nattachment error: stream {good_mm:.1f} mm, swapped {wrong_mm:.1f}, take end {fixed_mm:.1f} (kept {kept_mm:.1f})")
+    assert kept_mm == pytest.approx(wrong_mm) and "reassigned_at_end" not in kept.stats
+    assert fixed_mm < 0.5 * wrong_mm and fixed_mm < good_mm + 3.0
+
+
 def test_occlusion_gap_keeps_correspondence(streamed):
     s = _clone(streamed)
     # no periodic re-check here: it may legitimately move any marker to a better-fitting point,
