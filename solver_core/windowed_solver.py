@@ -416,14 +416,16 @@ class WindowedSolverConfig:
     # marker's surface point searched anew over the whole allowed surface, its mean distance over up
     # to ``CorrespondenceConfig.frames`` of the ring's frames) under the ring's poses revised under the
     # final lock - the paper's Stage 5 (repeat Stages 3-4) on the take's frames rather than on the
-    # reservoir's or the re-checks' recent ones.  The lock's points came from the reservoir (spread,
-    # every k-th frame) and the re-checks (48 recent frames, taken only when 3 mm better); session
-    # 31 measured them against the truth (rest-pose distance to the true attachment, 30 markers,
-    # walk / jump / arms x seeds 0-2): median 6.3-13.9 mm where the offline solver's on the same
-    # takes are 4.7-14.0 (6 of 9 better offline).  Recording MPJPE (own script over ``stream_solve``,
-    # the same 9 sessions, mean): 13.06 -> 12.85 mm, better on all 9 (offline 11.70); a local search
-    # (Stage 5's ``refine_radius_m`` around each point) instead 13.38 (4 worse); a second round
-    # changes nothing.  Costs one more revision of the ring and one Stage 3 when the take ends.
+    # reservoir's or the re-checks' recent ones.  Session 31 (own scripts over ``stream_solve``, the
+    # bench's walk / jump / arms x seeds 0-2): the lock's points against the truth (rest-pose distance
+    # to the true attachment, 30 markers) were 14.0 mm off on average, the offline solver's 12.3; with
+    # this 11.0 (median unchanged, 8.6: it moves the few markers that sat far off).  Recording MPJPE
+    # at 20 / 30 / 40 / 50 markers 24.40 / 13.06 / 9.24 / 8.61 -> 24.45 / 12.85 / 9.11 / 8.40 mm (offline
+    # 24.76 / 11.70 / 9.80 / 8.33): 23 of the 27 sessions at 30-50 markers better, none worse by over
+    # 0.05 mm; at 20 markers 4 better, 3 worse (the points are 9-24 mm off there); 12-marker parts
+    # (seed 0, left leg / right arm) 4 of 6 better.  A local search (Stage 5's ``refine_radius_m``
+    # around each point) instead: 30 markers 13.38 (4 worse); a second round changes nothing.  Costs
+    # one more revision of the ring and one Stage 3 when the take ends.
     reassign_at_end: bool = True
     # Ring sizes: recent frames kept for re-assignment (frames), priors kept (messages).
     history_frames: int = 64
