@@ -984,13 +984,8 @@ class WindowedSolver:
         which = np.flatnonzero(self.face_ids >= 0)
         if len(which) == 0:
             return
-        markers = torch.as_tensor(np.stack([f.markers[which] for f in frames]), dtype=torch.float32)
-        vis = torch.as_tensor(np.stack([f.visible[which] for f in frames]))
-        theta = torch.as_tensor(np.stack([f.theta for f in frames]), dtype=torch.float32)
-        params = BodyParams(theta[:, :3].contiguous(), theta[:, 3:].reshape(-1, 23, 3).contiguous(),
-                            torch.as_tensor(np.stack([f.trans for f in frames]), dtype=torch.float32), self.betas,
-                            torch.tensor(self.yaw, dtype=torch.float32))
-        att = find_marker_surface_points(self.model, markers, vis, params, self.up, self.allowed_ids,
+        markers, vis, params = self._stacked(frames)
+        att = find_marker_surface_points(self.model, markers[:, which], vis[:, which], params, self.up, self.allowed_ids,
                                          self.config.bootstrap_solver.correspondence, self._vertex_faces)
         faces = att.face_ids.numpy()
         ok = faces >= 0
@@ -2031,12 +2026,16 @@ class WindowedSolver:
         return out
 
     def _recent(self, frames: int):
-        hist = list(self._history)[-frames:]
-        markers = torch.as_tensor(np.stack([f.markers for f in hist]), dtype=torch.float32)
-        vis = torch.as_tensor(np.stack([f.visible for f in hist]))
-        theta = torch.as_tensor(np.stack([f.theta for f in hist]), dtype=torch.float32)
+        return self._stacked(list(self._history)[-frames:])
+
+    def _stacked(self, frames: list[_Frame]) -> tuple[torch.Tensor, torch.Tensor, BodyParams]:
+        """The frames' markers (F,M,3), visibility (F,M) and poses under the current lock, for the
+        staged solver's stages."""
+        markers = torch.as_tensor(np.stack([f.markers for f in frames]), dtype=torch.float32)
+        vis = torch.as_tensor(np.stack([f.visible for f in frames]))
+        theta = torch.as_tensor(np.stack([f.theta for f in frames]), dtype=torch.float32)
         params = BodyParams(theta[:, :3].contiguous(), theta[:, 3:].reshape(-1, 23, 3).contiguous(),
-                            torch.as_tensor(np.stack([f.trans for f in hist]), dtype=torch.float32), self.betas,
+                            torch.as_tensor(np.stack([f.trans for f in frames]), dtype=torch.float32), self.betas,
                             torch.tensor(self.yaw, dtype=torch.float32))
         return markers, vis, params
 
