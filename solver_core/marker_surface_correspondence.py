@@ -37,15 +37,10 @@ class CorrespondenceConfig:
     shortlist_vertices: int = 6
     # Beyond the paper (speed): at most this many evenly spaced frames vote.
     frames: int = 200
-    # When refining (Stage 5): None = search the whole body again (the paper's Stage 5), else a
-    # marker may move at most this far over the rest surface from its Stage-3 point.  Sessions 5-30
-    # used 0.05 (a marker could jump to a limb that follows it, e.g. the other forearm when the hands
-    # are held together); since then Stage 5 keeps each cluster on one segment and falls back when a
-    # round fits worse (staged_solver), and session 31 measured the whole-body search better (bench
-    # full suite, walk / jump / arms x seeds 0-2, offline MPJPE at 20 / 30 / 40 / 50 markers 24.76 /
-    # 11.70 / 9.80 / 8.33 -> 24.81 / 11.50 / 9.65 / 8.24 mm: 16 of 36 sessions better, 6 worse by
-    # over 0.05 mm).
-    refine_radius_m: float | None = None
+    # Beyond the paper: when refining (Stage 5), a marker may move at most this far over the rest
+    # surface.  The paper's Stage 5 searches the whole body again, which lets a marker jump to a
+    # limb that happens to follow it (e.g. the other forearm when the hands are held together).
+    refine_radius_m: float | None = 0.05
     # Beyond the paper: Weiszfeld iterations of the geometric median.
     median_iterations: int = 20
     # Paper Sec. Stage 4: delta = 9.5 mm.  Beyond the paper, Stage 3 scores points by the same

@@ -417,9 +417,8 @@ class WindowedSolverConfig:
     # to ``CorrespondenceConfig.frames`` of the ring's frames) under the ring's poses revised under the
     # final lock - the paper's Stage 5 (repeat Stages 3-4) on the take's frames rather than on the
     # reservoir's or the re-checks' recent ones.  Session 31 (own scripts over ``stream_solve``, the
-    # bench's walk / jump / arms x seeds 0-2; Stage 5 still searching within 5 cm then): the lock's
-    # points against the truth (rest-pose distance to the true attachment, 30 markers) were 14.0 mm
-    # off on average, the offline solver's 12.3; with
+    # bench's walk / jump / arms x seeds 0-2): the lock's points against the truth (rest-pose distance
+    # to the true attachment, 30 markers) were 14.0 mm off on average, the offline solver's 12.3; with
     # this 11.0 (median unchanged, 8.6: it moves the few markers that sat far off).  Recording MPJPE
     # at 20 / 30 / 40 / 50 markers 24.40 / 13.06 / 9.24 / 8.61 -> 24.45 / 12.85 / 9.11 / 8.40 mm (offline
     # 24.76 / 11.70 / 9.80 / 8.33): 23 of the 27 sessions at 30-50 markers better, none worse by over
