@@ -984,17 +984,11 @@ class WindowedSolver:
         which = np.flatnonzero(self.face_ids >= 0)
         if len(which) == 0:
             return
-        markers, vis, params = self._stacked(frames)
-        att = find_marker_surface_points(self.model, markers[:, which], vis[:, which], params, self.up, self.allowed_ids,
-                                         self.config.bootstrap_solver.correspondence, self._vertex_faces)
-        faces = att.face_ids.numpy()
-        ok = faces >= 0
-        if not ok.any():
+        before = self.face_ids[which].copy()
+        ok = self._place(which, *self._stacked(frames))
+        if ok is None:
             return
-        moved = ok & (faces != self.face_ids[which])
-        self.face_ids[which[ok]] = faces[ok]
-        self.bary[which[ok]] = att.bary.double().numpy()[ok]
-        self.stats["reassigned_at_end"] = int(moved.sum())  # markers that moved to another face
+        self.stats["reassigned_at_end"] = int((ok & (self.face_ids[which] != before)).sum())  # moved to another face
         self.labels_version += 1
         self._prepare_lock()
 
@@ -2039,18 +2033,25 @@ class WindowedSolver:
                             torch.tensor(self.yaw, dtype=torch.float32))
         return markers, vis, params
 
-    def _assign(self, which: np.ndarray, frames: int, count_new: int = 0) -> None:
-        """Stage 3 for the given markers on the recent frames under the current estimates."""
-        markers, vis, params = self._recent(frames)
-        which = np.asarray(which)
+    def _place(self, which: np.ndarray, markers: torch.Tensor, vis: torch.Tensor, params: BodyParams) -> np.ndarray | None:
+        """Stage 3 for the markers ``which`` over the given frames (markers (F,M,3), vis (F,M), their
+        poses): each one that found a point takes it.  Returns that mask over ``which`` (None: none did)."""
         att = find_marker_surface_points(self.model, markers[:, which], vis[:, which], params, self.up, self.allowed_ids,
                                          self.config.bootstrap_solver.correspondence, self._vertex_faces)
         faces = att.face_ids.numpy()
         ok = faces >= 0
         if not ok.any():
-            return
+            return None
         self.face_ids[which[ok]] = faces[ok]
         self.bary[which[ok]] = att.bary.double().numpy()[ok]
+        return ok
+
+    def _assign(self, which: np.ndarray, frames: int, count_new: int = 0) -> None:
+        """Stage 3 for the given markers on the recent frames under the current estimates."""
+        which = np.asarray(which)
+        ok = self._place(which, *self._recent(frames))
+        if ok is None:
+            return
         self._seen_run[which] = 0
         self._slip_run[which] = 0
         self.stats["new_tracks"] += count_new
