@@ -37,10 +37,16 @@ class CorrespondenceConfig:
     shortlist_vertices: int = 6
     # Beyond the paper (speed): at most this many evenly spaced frames vote.
     frames: int = 200
-    # Beyond the paper: when refining (Stage 5), a marker may move at most this far over the rest
-    # surface.  The paper's Stage 5 searches the whole body again, which lets a marker jump to a
-    # limb that happens to follow it (e.g. the other forearm when the hands are held together).
+    # Beyond the paper: when refining (Stage 5) a partial body, a marker may move at most this far
+    # over the rest surface.  The paper's Stage 5 searches the whole body again, which lets a marker
+    # jump to a limb that happens to follow it (e.g. the other forearm when the hands are held
+    # together); on a 12-marker part that cost the near-online jump's left leg 16.19 -> 19.36 mm
+    # part MPJPE (session 31).  None = the whole allowed surface.
     refine_radius_m: float | None = 0.05
+    # The same for a full body: the paper's whole-body search (None).  Session 31 (the bench's 36
+    # full-body sessions, walk / jump / arms x seeds 0-2, offline MPJPE at 20 / 30 / 40 / 50 markers):
+    # 0.05 m 24.76 / 11.70 / 9.80 / 8.33 mm, None 24.81 / 11.50 / 9.65 / 8.24 (16 better, 6 worse).
+    full_body_refine_radius_m: float | None = None
     # Beyond the paper: Weiszfeld iterations of the geometric median.
     median_iterations: int = 20
     # Paper Sec. Stage 4: delta = 9.5 mm.  Beyond the paper, Stage 3 scores points by the same
@@ -117,7 +123,8 @@ def find_marker_surface_points(
     markers (T,M,3) metres NaN where missing; visible (T,M) bool; params: the fitted body for the
     same T frames; allowed_vertex_ids: restrict to these vertices (None = all); previous: an earlier
     attachment to refine locally (Stage 5) - each marker then only searches the rest-pose surface
-    within ``config.refine_radius_m`` of its previous point.
+    within ``config.refine_radius_m`` of its previous point (``full_body_refine_radius_m`` when
+    ``allowed_vertex_ids`` is None: a full body).
     Markers never visible get face -1.  Returns MarkerAttachment.
     """
     if config.method not in ("surface", "vertex"):
@@ -138,8 +145,9 @@ def find_marker_surface_points(
     mk = markers[sel]
     vis = visible[sel]
     mean_dist = mean_distance_to_targets(mk, vis, posed, offset_m=config.marker_offset_m)  # (M,Na)
-    if previous is not None and config.refine_radius_m is not None:
-        mean_dist = _restrict_near_previous(model, params.betas, allowed, previous, mean_dist, config.refine_radius_m)
+    radius = config.refine_radius_m if allowed_vertex_ids is not None else config.full_body_refine_radius_m
+    if previous is not None and radius is not None:
+        mean_dist = _restrict_near_previous(model, params.betas, allowed, previous, mean_dist, radius)
     seen = vis.any(dim=0)
     k = min(config.shortlist_vertices, allowed.numel())
     best_local = torch.topk(mean_dist, k, dim=1, largest=False).indices  # (M,k)
