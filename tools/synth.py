@@ -105,6 +105,62 @@ def build_motion(cfg: SampleConfig, model, betas: np.ndarray):
     return mo.place_on_floor(motion, model, betas)
 
 
+@dataclass
+class SessionView:
+    """What the camera sees of a motion: the camera, its azimuth (= the prior's yaw offset), the
+    simulated video prior (session-contract arrays, None without one) with each video frame's
+    marker-clock time, and the rendered video's name (None without one)."""
+
+    camera: object
+    yaw_deg: float
+    error: object
+    prior: dict | None
+    content_s: np.ndarray | None
+    video_name: str | None
+    render_info: dict
+
+
+def camera_prior_video(cfg: SampleConfig, model, betas: np.ndarray, motion, joints: np.ndarray, out_dir: Path,
+                       stage=lambda name: None) -> SessionView:
+    """Place the camera at a random azimuth (seeded), simulate the video prior of ``motion`` (poses
+    at the marker rate, joints (F,24,3) of those poses) and render ``out_dir/video.mp4`` of it, per
+    ``cfg``'s prior and video fields.  Shared by generated sessions and sessions built from a real
+    capture (``capture_session``)."""
+    from uuomocap.solver_core.camera import place_camera
+    from uuomocap.solver_core.motions import sample_motion_at
+    from uuomocap.solver_core.prior_sim import PriorErrorModel, simulate_prior
+
+    cam_rng = _rng(cfg.seed, 3)
+    yaw = cam_rng.uniform(0.0, 360.0)
+    if cfg.yaw_offset_deg is not None:
+        yaw = float(cfg.yaw_offset_deg) % 360.0
+    cam_height = cam_rng.uniform(1.0, 1.6)
+    roll = math.radians(float(np.clip(cam_rng.normal(0.0, 1.5), -4.0, 4.0)))
+    w, h = cfg.video_size
+    camera = place_camera(joints[:, 0], cfg.up_axis, math.radians(yaw), int(w), int(h), camera_height_m=cam_height,
+                          roll_rad=roll)
+    prior_arrays, content = None, None
+    error = PriorErrorModel(video_rate_hz=cfg.video_rate_hz, pose_noise_rad=cfg.prior_noise_rad,
+                            pose_noise_tau_s=cfg.prior_noise_tau_s, shape_noise=cfg.prior_shape_noise,
+                            dropout_prob=cfg.prior_dropout, clock_offset_s=cfg.clock_offset_s,
+                            sync_error_s=cfg.sync_error_s, true_rate_hz=cfg.video_true_rate_hz)
+    if cfg.prior or cfg.video:
+        stage("prior")
+        prior_arrays, content = simulate_prior(motion, model, betas, camera.R_wc, error, cfg.seed, cfg.body_model)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    video_name, render_info = None, {}
+    if cfg.video:
+        stage("video")
+        from uuomocap.render import render_video
+
+        duration = (motion.num_frames - 1) / motion.rate_hz
+        vposes, vtrans = sample_motion_at(motion, np.clip(content, 0.0, duration))
+        video_name = "video.mp4"
+        render_info = render_video(model, betas, vposes, vtrans, camera, out_dir / video_name, cfg.video_rate_hz,
+                                   cfg.up_axis)
+    return SessionView(camera, yaw, error, prior_arrays if cfg.prior else None, content, video_name, render_info)
+
+
 def make_session(out_dir: str | Path, cfg: SampleConfig, progress=None) -> dict:
     """Generate a session into ``out_dir``; returns a summary dict.
 
@@ -113,13 +169,10 @@ def make_session(out_dir: str | Path, cfg: SampleConfig, progress=None) -> dict:
     import torch
 
     from uuomocap.solver_core.body_model import load_body_model
-    from uuomocap.solver_core.camera import place_camera
     from uuomocap.solver_core.lbs import forward
     from uuomocap.solver_core.marker_sim import (MARKER_OFFSET_M, MarkerRealism, marker_trajectories, random_layout,
                                                  simulate_markers, structured_layout)
-    from uuomocap.solver_core.motions import sample_motion_at
     from uuomocap.solver_core.parts import PART_JOINTS
-    from uuomocap.solver_core.prior_sim import PriorErrorModel, simulate_prior
 
     def stage(name):
         if progress is not None:
@@ -162,37 +215,10 @@ def make_session(out_dir: str | Path, cfg: SampleConfig, progress=None) -> dict:
     sim = simulate_markers(clean, layout, cfg.rate_hz, realism, cfg.seed)
 
     stage("camera")
-    cam_rng = _rng(cfg.seed, 3)
-    yaw = cam_rng.uniform(0.0, 360.0)
-    if cfg.yaw_offset_deg is not None:
-        yaw = float(cfg.yaw_offset_deg) % 360.0
-    cam_height = cam_rng.uniform(1.0, 1.6)
-    roll = math.radians(float(np.clip(cam_rng.normal(0.0, 1.5), -4.0, 4.0)))
+    view = camera_prior_video(cfg, model, betas, motion, joints, out_dir, stage)
+    camera, yaw, prior_arrays, content, error = view.camera, view.yaw_deg, view.prior, view.content_s, view.error
+    video_name, render_info = view.video_name, view.render_info
     w, h = cfg.video_size
-    camera = place_camera(joints[:, 0], cfg.up_axis, math.radians(yaw), int(w), int(h), camera_height_m=cam_height,
-                          roll_rad=roll)
-
-    prior_arrays, content = None, None
-    error = PriorErrorModel(video_rate_hz=cfg.video_rate_hz, pose_noise_rad=cfg.prior_noise_rad,
-                            pose_noise_tau_s=cfg.prior_noise_tau_s, shape_noise=cfg.prior_shape_noise,
-                            dropout_prob=cfg.prior_dropout, clock_offset_s=cfg.clock_offset_s,
-                            sync_error_s=cfg.sync_error_s, true_rate_hz=cfg.video_true_rate_hz)
-    if cfg.prior or cfg.video:
-        stage("prior")
-        prior_arrays, content = simulate_prior(motion, model, betas, camera.R_wc, error, cfg.seed, cfg.body_model)
-
-    out_dir.mkdir(parents=True, exist_ok=True)
-    video_name = None
-    render_info = {}
-    if cfg.video:
-        stage("video")
-        from uuomocap.render import render_video
-
-        duration = (F - 1) / cfg.rate_hz
-        vposes, vtrans = sample_motion_at(motion, np.clip(content, 0.0, duration))
-        video_name = "video.mp4"
-        render_info = render_video(model, betas, vposes, vtrans, camera, out_dir / video_name, cfg.video_rate_hz,
-                                   cfg.up_axis)
 
     stage("write")
     gt = {

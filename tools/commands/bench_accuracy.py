@@ -8,6 +8,11 @@ markers (nested per seed) x seeds x motions (appendix "Synthetic Marker Placemen
 three partial-body parts of Table 2 (left leg, right arm, left shoulder), and occlusion
 0 / 0.2 % / 1 % with 10-frame hides (appendix "Marker Tracking Loss").  Like the paper,
 markers run at 30 Hz.
+
+``--captures FILE[,FILE...]`` runs the methods on real labeled captures instead: each file becomes
+a session of its own markers, unlabeled, scored against its labelled fit (``capture_session``;
+table "real captures", one scenario per file, ``--seeds`` camera / prior draws each, at the
+capture's own rate).
 """
 
 from __future__ import annotations
@@ -19,7 +24,7 @@ import os
 import sys
 import time
 import traceback
-from dataclasses import asdict, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -89,8 +94,44 @@ def _suite_scenarios(suite: str, seeds: int | None, motions: tuple[str, ...] | N
     return out
 
 
+@dataclass(frozen=True)
+class CaptureConfig:
+    """A session built from a real labeled capture (``capture_session.make_capture_session``):
+    the file, its content hash (the cache key changes with the file) and the camera / prior draw."""
+
+    file: str
+    sha1: str
+    sample: object  # SampleConfig: seed, prior and video fields
+
+    @property
+    def body_model(self) -> str:
+        return self.sample.body_model
+
+
+def capture_scenarios(files: list[str], seeds: int | None, video: bool):
+    """One scenario per capture file, ``seeds`` draws of camera and prior each (default 1)."""
+    from uuomocap.synth import SampleConfig
+
+    out = []
+    for f in files:
+        path = Path(f)
+        if not path.is_file():
+            raise UserError(f"--captures: {f} is not a file")
+        sha = hashlib.sha1(path.read_bytes()).hexdigest()[:10]
+        cfgs = [CaptureConfig(str(path.resolve()), sha, SampleConfig(motion=path.name, seed=s, video=video))
+                for s in range(seeds or 1)]
+        out.append(("real captures", path.stem, cfgs))
+    return out
+
+
 def session_key(cfg) -> str:
     from uuomocap.synth import GENERATOR_VERSION
+
+    if isinstance(cfg, CaptureConfig):
+        from uuomocap.capture_session import GENERATOR_VERSION as CAPTURE_VERSION
+
+        blob = json.dumps({"v": CAPTURE_VERSION, "sha1": cfg.sha1, **asdict(cfg.sample)}, sort_keys=True, default=str)
+        return f"capture-{Path(cfg.file).stem}-s{cfg.sample.seed}-{hashlib.sha1(blob.encode()).hexdigest()[:10]}"
 
     blob = json.dumps({"v": GENERATOR_VERSION, **asdict(cfg)}, sort_keys=True, default=str)
     h = hashlib.sha1(blob.encode()).hexdigest()[:10]
@@ -100,6 +141,7 @@ def session_key(cfg) -> str:
 
 def ensure_session(cache: Path, cfg) -> Path:
     """Generate the session unless the cache already holds it (session.yaml is written last)."""
+    from uuomocap.capture_session import make_capture_session
     from uuomocap.synth import make_session
 
     d = cache / "sessions" / session_key(cfg)
@@ -110,7 +152,10 @@ def ensure_session(cache: Path, cfg) -> Path:
         import shutil
 
         shutil.rmtree(tmp)
-    make_session(tmp, cfg)
+    if isinstance(cfg, CaptureConfig):
+        make_capture_session(cfg.file, tmp, cfg.sample)
+    else:
+        make_session(tmp, cfg)
     tmp.rename(d)
     return d
 
@@ -211,7 +256,11 @@ def run_bench(args) -> dict:
         raise UserError("no methods are registered")
     motions = tuple(m for item in (args.motions or []) for m in item.split(",") if m) or None
     only = tuple(s.strip() for item in (getattr(args, "scenarios", None) or []) for s in item.split(",") if s.strip())
-    scenarios = suite_scenarios(args.suite, args.seeds, motions, args.video, getattr(args, "duration", None), only or None)
+    captures = [f for item in (getattr(args, "captures", None) or []) for f in item.split(",") if f]
+    if captures:
+        scenarios = capture_scenarios(captures, args.seeds, args.video)
+    else:
+        scenarios = suite_scenarios(args.suite, args.seeds, motions, args.video, getattr(args, "duration", None), only or None)
     cache = Path(args.cache) if args.cache else default_cache()
     cache.mkdir(parents=True, exist_ok=True)
 
@@ -226,7 +275,7 @@ def run_bench(args) -> dict:
         bar.set_postfix_str(f"generate {key[:28]}")
         try:
             session_dirs[key] = ensure_session(cache, cfg)
-        except (ValueError, OSError) as exc:
+        except (ValueError, OSError) as exc:  # MarkerFileError is a ValueError
             bar.close()
             raise UserError(f"generating session {key}: {exc}") from None
         bar.update(1)
@@ -274,7 +323,7 @@ def run_bench(args) -> dict:
     summary = summarise(runs)
     layout = [(t, s) for t, s, _ in scenarios]
     return {
-        "suite": args.suite,
+        "suite": "captures" if captures else args.suite,
         "methods": methods,
         "cache": str(cache),
         "sessions": {k: {"dir": str(d), "config": asdict(unique[k]), "m2s_gt": gt_m2s.get(k)} for k, d in session_dirs.items()},
@@ -299,7 +348,9 @@ def _handler(args) -> int:
     print(res["table"])
     ref = [v["m2s_gt"] for v in res["sessions"].values() if v.get("m2s_gt") is not None]
     if ref:
-        print(f"ground truth m2s (markers 9.5 mm off the skin): {np.mean(ref):.2f} mm; "
+        what = ("reference m2s (the labelled fit of the real markers)" if res["suite"] == "captures"
+                else "ground truth m2s (markers 9.5 mm off the skin)")
+        print(f"{what}: {np.mean(ref):.2f} mm; "
               f"{len(res['sessions'])} sessions (generation {res['generate_seconds']} s), total {res['total_seconds']} s "
               f"on {res['threads']} thread{'s' if res['threads'] != 1 else ''}"
               + (f"; JSON: {args.json}" if args.json else ""))
@@ -326,6 +377,9 @@ def register_bench(subparsers) -> None:
                    help="session length in seconds (default: 8, smoke 2.5)")
     p.add_argument("--scenarios", action="append", metavar="NAME[,NAME...]",
                    help="run only these scenarios of the suite, e.g. '40 markers' or 'left_leg'")
+    p.add_argument("--captures", action="append", metavar="FILE[,FILE...]",
+                   help="instead of the suite: real LABELED captures (.c3d/.trc), each solved from its markers with the "
+                        "labels taken away and scored against its labelled fit (`uuomocap sample from-capture`)")
     p.add_argument("--pa-mpjpe", action="store_true",
                    help="add a PA-MPJPE column (per-frame similarity-aligned) to the full-body tables")
     p.add_argument("--video", action="store_true", help="also render video.mp4 (for methods that run the video estimator)")

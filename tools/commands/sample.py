@@ -56,18 +56,43 @@ def config_from_args(args):
     )
 
 
+def prepare_session_dir(directory: str, force: bool) -> Path:
+    """The directory a new session goes to: it must not exist or be empty, or (with --force) be
+    an old session, which is deleted."""
+    out = Path(directory)
+    if out.exists() and any(out.iterdir()):
+        if not force:
+            raise UserError(f"{out} exists and is not empty (use --force to replace it)")
+        if not (out / "session.yaml").is_file():
+            raise UserError(f"{out} is not a session directory; refusing to delete it even with --force")
+        shutil.rmtree(out)
+    return out
+
+
+def add_camera_arguments(m) -> None:
+    """The video prior / camera / video options a session's simulated video takes."""
+    m.add_argument("--prior-noise", type=_nonneg, default=0.15,
+                   help="video prior per-joint rotation error, RMS radians (AR(1), tau 0.3 s)")
+    m.add_argument("--prior-shape-noise", type=_nonneg, default=0.5, help="video prior shape error (betas std)")
+    m.add_argument("--prior-dropout", type=_prob, default=0.01, help="per-frame probability of a tracking loss")
+    m.add_argument("--yaw-offset", type=float, default=None,
+                   help="camera azimuth = prior yaw offset in degrees (default: uniform over 360)")
+    m.add_argument("--clock-offset", type=float, default=0.0, help="marker_time = video_time + offset (s), recorded")
+    m.add_argument("--sync-error", type=float, default=0.0, help="extra video time offset NOT recorded (s)")
+    m.add_argument("--video-rate", type=_positive, default=30.0, help="nominal video / prior rate (Hz)")
+    m.add_argument("--video-true-rate", type=_positive, default=None,
+                   help="actual video rate when it differs from the nominal one (e.g. 29.97)")
+    m.add_argument("--video-size", type=_size, default=(320, 240), help="WxH of the rendered video")
+    m.add_argument("--video", action=argparse.BooleanOptionalAction, default=True, help="render video.mp4")
+    m.add_argument("--prior", action=argparse.BooleanOptionalAction, default=True, help="write prior.npz")
+
+
 def _make(args) -> int:
     from tqdm import tqdm
 
     from uuomocap.synth import make_session
 
-    out = Path(args.dir)
-    if out.exists() and any(out.iterdir()):
-        if not args.force:
-            raise UserError(f"{out} exists and is not empty (use --force to replace it)")
-        if not (out / "session.yaml").is_file():
-            raise UserError(f"{out} is not a session directory; refusing to delete it even with --force")
-        shutil.rmtree(out)
+    out = prepare_session_dir(args.dir, args.force)
     cfg = config_from_args(args)
     stages = ["motion", "markers", "camera", "prior", "video", "write"]
     bar = tqdm(total=len(stages), desc="sample", unit="stage", file=sys.stderr, disable=args.quiet, leave=False)
@@ -113,7 +138,9 @@ def _check(args) -> int:
 def register(subparsers) -> None:
     p = subparsers.add_parser("sample", help="generate synthetic sessions with ground truth",
                               description="Synthetic sessions with ground truth: `sample make DIR`, `sample check DIR`, "
-                                          "`sample motion-from-markers FILE --out motion.npz` (a real labeled capture as a motion).")
+                                          "`sample motion-from-markers FILE --out motion.npz` (a real labeled capture as a motion), "
+                                          "`sample from-capture FILE DIR` (a real labeled capture's markers, unlabeled, "
+                                          "against its labelled fit).")
     sub = p.add_subparsers(dest="sample_cmd", metavar="CMD")
     p.set_defaults(func=lambda a: (p.print_help(sys.stderr), 2)[1])
 
@@ -150,20 +177,7 @@ def register(subparsers) -> None:
     m.add_argument("--body-model", default="open-low", help="open-low, open-full, or a SMPL .pkl/.npz path")
     m.add_argument("--shape-sigma", type=_nonneg, default=1.0, help="body shape spread (betas std)")
     m.add_argument("--up-axis", choices=("+z", "+y"), default="+z", help="world up axis")
-    m.add_argument("--prior-noise", type=_nonneg, default=0.15,
-                   help="video prior per-joint rotation error, RMS radians (AR(1), tau 0.3 s)")
-    m.add_argument("--prior-shape-noise", type=_nonneg, default=0.5, help="video prior shape error (betas std)")
-    m.add_argument("--prior-dropout", type=_prob, default=0.01, help="per-frame probability of a tracking loss")
-    m.add_argument("--yaw-offset", type=float, default=None,
-                   help="camera azimuth = prior yaw offset in degrees (default: uniform over 360)")
-    m.add_argument("--clock-offset", type=float, default=0.0, help="marker_time = video_time + offset (s), recorded")
-    m.add_argument("--sync-error", type=float, default=0.0, help="extra video time offset NOT recorded (s)")
-    m.add_argument("--video-rate", type=_positive, default=30.0, help="nominal video / prior rate (Hz)")
-    m.add_argument("--video-true-rate", type=_positive, default=None,
-                   help="actual video rate when it differs from the nominal one (e.g. 29.97)")
-    m.add_argument("--video-size", type=_size, default=(320, 240), help="WxH of the rendered video")
-    m.add_argument("--video", action=argparse.BooleanOptionalAction, default=True, help="render video.mp4")
-    m.add_argument("--prior", action=argparse.BooleanOptionalAction, default=True, help="write prior.npz")
+    add_camera_arguments(m)
     m.add_argument("--force", action="store_true", help="replace an existing session directory")
     m.add_argument("--quiet", action="store_true", help="no progress bar")
     add_json_flag(m)
@@ -175,6 +189,7 @@ def register(subparsers) -> None:
     add_json_flag(c)
     c.set_defaults(func=_check)
 
-    from uuomocap.commands.sample_motion import register_motion_from_markers
+    from uuomocap.commands.sample_motion import register_from_capture, register_motion_from_markers
 
     register_motion_from_markers(sub)
+    register_from_capture(sub)

@@ -1,4 +1,5 @@
-"""``uuomocap sample motion-from-markers FILE --out motion.npz``: a labeled capture -> AMASS-style motion.
+"""``uuomocap sample motion-from-markers FILE --out motion.npz``: a labeled capture -> AMASS-style motion;
+``uuomocap sample from-capture FILE DIR``: a labeled capture -> a session of its markers, unlabeled.
 
 Labeled IK (``solver_core.labeled_fit``): every label is one fixed body surface point; the body is
 fitted to all frames, and the motion is written Z-up like AMASS, so ``sample make --motion`` replays it.
@@ -104,5 +105,67 @@ def _run(args) -> int:
     if info["suspicious_labels"]:
         lines.append("check these labels (large max residual: swap or mis-track?): " + ", ".join(info["suspicious_labels"]))
     lines += [f"warning: {w}" for w in warnings]
+    emit(args, info, "\n".join(lines))
+    return 0
+
+
+def register_from_capture(sub) -> None:
+    from uuomocap.commands.sample import add_camera_arguments
+
+    p = sub.add_parser(
+        "from-capture",
+        help="a session of a real LABELED capture's markers, labels taken away, scored against its labelled fit",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        description=(
+            "Real markers for the unlabelled solvers: fit the body to the labeled file (as "
+            "motion-from-markers) and write a session whose markers are the file's own - Z-up, in a "
+            "random column order, placeholder labels - with that fit as gt.npz (the labelled "
+            "reference, the paper's MoSh++ role on real data), a simulated video prior of it and a "
+            "rendered video (as `sample make`).  Scores against it (`uuomocap solve DIR`, `uuomocap "
+            "eval`) are agreement with a labelled solve of the same markers; the reference's own "
+            "marker RMS is printed and kept in gt.npz."),
+    )
+    p.add_argument("file", help="labeled marker file (.trc or .c3d)")
+    p.add_argument("dir", help="session directory to create")
+    p.add_argument("--frames", type=_frames, default=(None, None), metavar="A:B", help="only frames A..B-1 (0-based)")
+    p.add_argument("--seed", type=int, default=0, help="seed for the marker order, camera and prior error")
+    p.add_argument("--body-model", default="open-low", help="open-low, open-full, or a SMPL .pkl/.npz path")
+    add_camera_arguments(p)
+    p.add_argument("--force", action="store_true", help="replace an existing session directory")
+    add_json_flag(p)
+    p.set_defaults(func=_from_capture)
+
+
+def _from_capture(args) -> int:
+    import torch
+
+    from uuomocap.capture_session import make_capture_session
+    from uuomocap.commands.sample import prepare_session_dir
+    from uuomocap.protocol.markerio import MarkerFileError
+    from uuomocap.synth import SampleConfig
+
+    torch.set_num_threads(1)
+    out = prepare_session_dir(args.dir, args.force)
+    cfg = SampleConfig(motion=str(args.file), seed=args.seed, body_model=args.body_model, prior=args.prior, video=args.video,
+                       video_size=args.video_size, video_rate_hz=args.video_rate, prior_noise_rad=args.prior_noise,
+                       prior_shape_noise=args.prior_shape_noise, prior_dropout=args.prior_dropout,
+                       yaw_offset_deg=args.yaw_offset, clock_offset_s=args.clock_offset, sync_error_s=args.sync_error,
+                       video_true_rate_hz=args.video_true_rate)
+    t0 = time.perf_counter()
+    try:
+        info = make_capture_session(args.file, out, cfg, frames=args.frames)
+    except (MarkerFileError, ValueError, OSError) as exc:
+        raise UserError(str(exc)) from None
+    info["seconds"] = round(time.perf_counter() - t0, 2)
+    rms = info["reference_rms"]
+    lines = [f"wrote {info['session']}: {info['frames']} frames @ {info['rate_hz']} Hz, {info['markers']} real markers "
+             f"({100 * info['missing_fraction']:.1f}% missing) from {info['capture']}, prior {info['prior_frames']} frames, "
+             f"video {info['video'] or 'none'}, yaw offset {info['yaw_offset_deg']:.1f} deg, {info['seconds']} s",
+             f"reference (labelled fit) marker RMS per frame (mm): mean {rms.get('mean_mm')}, median {rms.get('median_mm')}, "
+             f"p95 {rms.get('p95_mm')}, max {rms.get('max_mm')}"]
+    if info["ignored_labels"]:
+        lines.append("labels never seen, left out: " + ", ".join(info["ignored_labels"]))
+    if info["reference_suspicious_labels"]:
+        lines.append("labels the reference fits badly (skin motion, swaps?): " + ", ".join(info["reference_suspicious_labels"]))
     emit(args, info, "\n".join(lines))
     return 0
