@@ -28,7 +28,9 @@ import numpy as np
 from uuomocap.synth import SampleConfig, _rng, camera_prior_video
 
 GENERATOR = "uuomocap sample from-capture"
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2  # 2: frames without markers at the take's ends left out
+# a frame belongs to the take once this many of its labels are seen
+MIN_TAKE_MARKERS = 3
 
 
 def make_capture_session(marker_file: str | Path, out_dir: str | Path, cfg: SampleConfig,
@@ -59,10 +61,18 @@ def make_capture_session(marker_file: str | Path, out_dir: str | Path, cfg: Samp
     md = read_markers(marker_file)
     if not md.labelled:
         raise ValueError(f"{marker_file}: the markers are not labeled (placeholder names); a reference needs labels")
-    sl = slice(*frames)
-    positions, visible = md.positions[sl], md.visible[sl]
+    first = range(md.n_frames)[slice(*frames)].start if md.n_frames else 0
+    positions, visible = md.positions[slice(*frames)], md.visible[slice(*frames)]
+    # the take is where markers are: a file's leading / trailing frames with (almost) none (a gait
+    # trial's walk into and out of the volume) have no reference to score against - the labelled
+    # fit there is the smoothness term's extrapolation, 100-170 mm from any video prior's guess
+    seen = np.flatnonzero(visible.sum(axis=1) >= MIN_TAKE_MARKERS)
+    if seen.size:
+        positions, visible = positions[seen[0]:seen[-1] + 1], visible[seen[0]:seen[-1] + 1]
+        first += int(seen[0])
     if positions.shape[0] < 2:
-        raise ValueError(f"frames {frames[0]}:{frames[1]} select {positions.shape[0]} frame(s) of {md.n_frames}; need at least 2")
+        raise ValueError(f"frames {frames[0]}:{frames[1]} of {md.n_frames} hold {positions.shape[0]} frame(s) with "
+                         f">= {MIN_TAKE_MARKERS} markers seen; need at least 2")
     rate = float(md.rate_hz)
 
     stage("reference")
@@ -112,7 +122,7 @@ def make_capture_session(marker_file: str | Path, out_dir: str | Path, cfg: Samp
         gt["video_content_s"] = view.content_s
     prov = {
         "generator": GENERATOR, "generator_version": GENERATOR_VERSION,
-        "capture": marker_file.name, "capture_frames": [int(frames[0] or 0), int(frames[0] or 0) + T],
+        "capture": marker_file.name, "capture_frames": [first, first + T],
         "capture_up_axis": md.up_axis, "rate_hz": rate, "seed": int(cfg.seed),
         "n_markers": int(len(order)), "ignored_labels": [md.labels[k] for k in fit.ignored],
         "reference": "labeled IK", "reference_rms": rms,
@@ -124,7 +134,8 @@ def make_capture_session(marker_file: str | Path, out_dir: str | Path, cfg: Samp
                  video_file=view.video_name, video_rate_hz=cfg.video_rate_hz, clock_offset_s=cfg.clock_offset_s,
                  provenance=prov)
     return {
-        "session": str(out_dir), "capture": marker_file.name, "frames": T, "rate_hz": rate, "markers": int(len(order)),
+        "session": str(out_dir), "capture": marker_file.name, "frames": T, "capture_frames": [first, first + T],
+        "rate_hz": rate, "markers": int(len(order)),
         "ignored_labels": prov["ignored_labels"], "missing_fraction": float(np.isnan(markers[..., 0]).mean()),
         "reference_rms": rms, "reference_suspicious_labels": prov["reference_suspicious_labels"],
         "prior_frames": int(view.prior["stamps_ns"].shape[0]) if view.prior is not None else 0,

@@ -158,7 +158,8 @@ def _from_capture(args) -> int:
         raise UserError(str(exc)) from None
     info["seconds"] = round(time.perf_counter() - t0, 2)
     rms = info["reference_rms"]
-    lines = [f"wrote {info['session']}: {info['frames']} frames @ {info['rate_hz']} Hz, {info['markers']} real markers "
+    a, b = info["capture_frames"]
+    lines = [f"wrote {info['session']}: {info['frames']} frames (the file's {a}:{b}) @ {info['rate_hz']} Hz, {info['markers']} real markers "
              f"({100 * info['missing_fraction']:.1f}% missing) from {info['capture']}, prior {info['prior_frames']} frames, "
              f"video {info['video'] or 'none'}, yaw offset {info['yaw_offset_deg']:.1f} deg, {info['seconds']} s",
              f"reference (labelled fit) marker RMS per frame (mm): mean {rms.get('mean_mm')}, median {rms.get('median_mm')}, "
