@@ -83,3 +83,32 @@ def test_an_unlabeled_file_cannot_be_a_reference(tmp_path, capsys):
     assert main(["sample", "from-capture", str(UNLABELED), str(tmp_path / "x"), "--no-video"]) == 2
     assert "not labeled" in capsys.readouterr().err
     assert not (tmp_path / "x" / "session.yaml").exists()
+
+
+GAIT = DATA / "btk_gait_occluded.c3d"
+
+
+@pytest.mark.skipif(not GAIT.is_file(), reason="shared data missing")
+@pytest.mark.xfail(strict=True, reason="known failure (session 33): Stage 2's per-frame fits slide apart on this layout")
+def test_a_clinical_gait_layout_solves_unlabeled(tmp_path):
+    """A Motion Analysis gait trial (33 markers, 12 of them on the shoes), labels taken away: the
+    offline solver should agree with the labelled fit.  It does not yet: Stage 2's per-frame fits
+    slide apart (pelvis 0-235 mm too low frame by frame) and Stages 4-5 settle with the whole body
+    11 cm down, every marker one segment up the chain: 121-142 mm MPJPE, label accuracy 0.33.
+    Stage 2 with the joint-acceleration term (0.03) solves it (14.9 mm) but costs the other real
+    captures 1.5-10 mm (docs/NOTEBOOK.md, session 33); strict, so the fix flips this test."""
+    from uuomocap.capture_session import make_capture_session
+    from uuomocap.commands.eval import evaluate_paths
+    from uuomocap.methods import METHODS
+    from uuomocap.synth import SampleConfig
+
+    d = tmp_path / "gait"
+    info = make_capture_session(GAIT, d, SampleConfig(video=False))
+    # the file's 487 frames hold markers only while the subject crosses the volume
+    assert info["capture_frames"] == [133, 327] and info["markers"] == 33
+    out = tmp_path / "uuo.npz"
+    METHODS["uuo"](d, out, "open-low")
+    m = evaluate_paths(out, d / "gt.npz", d / "markers.c3d", with_gt_m2s=True)
+    # with Stage 2's smoothness 0.03: MPJPE 14.9 mm, marker fit under the reference's own
+    assert m["mpjpe"] < 40.0, m
+    assert m["m2s"] < m["m2s_gt"] + 3.0, m
