@@ -92,7 +92,7 @@ def make_capture_session(marker_file: str | Path, out_dir: str | Path, cfg: Samp
     z_up = np.where(visible[..., None], positions, np.nan) @ turn.T
     # labels the fit ignored (never seen) are no markers of this take; the rest in a random order:
     # a labelled file's columns often follow the body (head to feet), which an unlabelled stream's do not
-    kept = np.array([k for k in range(md.n_markers) if k not in set(fit.ignored)], dtype=np.int64)
+    kept = np.setdiff1d(np.arange(md.n_markers), np.asarray(fit.ignored, dtype=np.int64))
     order = kept[_rng(cfg.seed, 2).permutation(len(kept))]
     markers = z_up[:, order]
 
