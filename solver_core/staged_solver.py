@@ -145,9 +145,9 @@ class SolverConfig:
     # Beyond the paper: a second pass through Stages 1-5 with this temporal smoothness weight at
     # Stages 1-2 (pose_fitting's smoothness_weight) when the first pass's Stage-5 marker fit is worse
     # than stage2_smooth_trigger_mm; the pass whose markers fit better wins (None = one pass).
-    # 0.03: BTK gait 138 -> 21.5 mm MPJPE; 0.01 / 0.1: 33 / 19 mm (README has the sweep).
+    # 0.03: BTK gait 138 -> 21.5 mm MPJPE (docs/NOTEBOOK.md, sessions 33-34: 0.01 / 0.1 gave 33 / 19 mm).
     stage2_smooth_alternative: float | None = 0.03
-    # A right solve fits the markers to 2.6-9.6 mm on the 36 generated sessions and 7.8-10.3 mm on
+    # A right solve fits the markers to 2.6-8.9 mm on the 36 generated sessions and 7.8-10.3 mm on
     # three real captures; the gait capture's slid-apart Stage 2 ends at 21.5 mm.  Below this the
     # second pass is not tried (it would double the solve's time).
     stage2_smooth_trigger_mm: float = 12.0
@@ -554,7 +554,7 @@ def solve(
     # gait capture: Stage-5 marker fit 21.5 mm, MPJPE 138 mm); with a smoothness term across
     # frames (at the screening too) the same capture fits to 7.7 mm / 21.5 mm, but the term costs
     # where Stage 2 was right (Hamner run 14 -> 30 mm).  Both go through Stages 1-5 and the better
-    # marker fit wins: README "Stage-2 smoothness as a second pass" has the numbers.
+    # marker fit wins (README, "Real captures"; docs/NOTEBOOK.md, session 34).
     alternative = run(replace(config.pose_fitting, smoothness_weight=config.stage2_smooth_alternative))
     fits = (result.diagnostics["stage5_marker_fit_mm"], alternative.diagnostics["stage5_marker_fit_mm"])
     chosen = alternative if fits[1] < fits[0] else result
