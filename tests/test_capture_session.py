@@ -88,22 +88,31 @@ def test_an_unlabeled_file_cannot_be_a_reference(tmp_path, capsys):
 GAIT = DATA / "btk_gait_occluded.c3d"
 
 
-@pytest.mark.skipif(not GAIT.is_file(), reason="shared data missing")
-def test_a_clinical_gait_layout_solves_unlabeled(tmp_path):
-    """A Motion Analysis gait trial (33 markers, 12 of them on the shoes), labels taken away: the
+@pytest.fixture(scope="module")
+def gait_session(tmp_path_factory):
+    """A Motion Analysis gait trial (33 markers, 12 of them on the shoes) as an unlabeled session."""
+    if not GAIT.is_file():
+        pytest.skip("shared data missing")
+    from uuomocap.capture_session import make_capture_session
+    from uuomocap.synth import SampleConfig
+
+    d = tmp_path_factory.mktemp("cap") / "gait"
+    info = make_capture_session(GAIT, d, SampleConfig(video=False))
+    # the file's 487 frames hold markers only while the subject crosses the volume
+    assert info["capture_frames"] == [133, 327] and info["markers"] == 33
+    return d
+
+
+def test_a_clinical_gait_layout_solves_unlabeled(gait_session, tmp_path):
+    """The gait trial, labels taken away: the
     offline solver agrees with the labelled fit.  Stage 2's per-frame fits slide apart on this
     layout (pelvis 0-235 mm too low frame by frame; Stages 4-5 then settle with the body 11 cm
     down: 138 mm MPJPE, marker fit 21.5 mm); that fit triggers the second pass with Stage 2's
     joint-acceleration term, which fits the markers to 7.7 mm and wins (session 34)."""
-    from uuomocap.capture_session import make_capture_session
     from uuomocap.commands.eval import evaluate_paths
     from uuomocap.methods import METHODS
-    from uuomocap.synth import SampleConfig
 
-    d = tmp_path / "gait"
-    info = make_capture_session(GAIT, d, SampleConfig(video=False))
-    # the file's 487 frames hold markers only while the subject crosses the volume
-    assert info["capture_frames"] == [133, 327] and info["markers"] == 33
+    d = gait_session
     out = tmp_path / "uuo.npz"
     diag = METHODS["uuo"](d, out, "open-low")
     second = diag["stage2_alternative"]
@@ -112,3 +121,23 @@ def test_a_clinical_gait_layout_solves_unlabeled(tmp_path):
     # session 34: MPJPE 21.5 mm (138 mm without the second pass), marker fit under the reference's own
     assert m["mpjpe"] < 40.0, m
     assert m["m2s"] < m["m2s_gt"] + 3.0, m
+
+
+def test_a_take_shorter_than_the_bootstrap_window_bootstraps_at_its_end_at_the_full_rate(gait_session):
+    """The gait trial is 1.9 s at 100 Hz, shorter than the 3 s bootstrap window: the near-online
+    solver bootstraps when the take ends, where no frame waits on it, on every frame.  Decimated
+    to the live bootstrap's 30 Hz both starts fit the markers 17.5 / 19.0 mm and the recording was
+    97.1 mm MPJPE; on all 194 frames 7.8 / 8.1 mm and 19.6 mm (session 35)."""
+    from uuomocap.protocol.session import read_npz
+    from uuomocap.solver_core.metrics import mpjpe
+    from uuomocap.solver_core.windowed_solver import WindowedSolverConfig
+    from uuomocap.window_methods import stream_solve
+
+    assert WindowedSolverConfig().end_bootstrap_rate_hz >= 100.0 > WindowedSolverConfig().bootstrap_rate_hz
+    run = stream_solve(gait_session)
+    assert run.stats["bootstraps"] == 1 and run.stats["rebootstraps"] == 0, run.stats
+    assert min(run.stats["bootstrap_start_fits_mm"]) < 12.0, run.stats
+    gt = np.asarray(read_npz(gait_session / "gt.npz")["joints"])
+    rec = run.recording["joints"]
+    assert np.isfinite(rec).all()
+    assert mpjpe(rec, gt) < 40.0
