@@ -271,3 +271,96 @@ def render_video(model, betas: np.ndarray, poses: np.ndarray, trans: np.ndarray,
         writer.release()
     n = poses.shape[0]
     return {"frames": int(n), "seconds_per_frame": (time.perf_counter() - t0) / max(n, 1)}
+
+
+# ----------------------------------------------------------------------------- solve contact sheet
+
+# Marker colours (BGR) by the body part they were labelled with; unlabelled markers are red.
+_PART_BGR = ((200, 120, 0), (0, 160, 0), (170, 0, 170), (0, 150, 200), (120, 60, 0), (0, 110, 90), (140, 140, 0),
+             (60, 60, 160), (0, 90, 200), (110, 0, 90), (80, 160, 80), (160, 80, 40))
+UNLABELLED_BGR = (0, 0, 230)
+
+
+def facing_azimuth(root_orient: np.ndarray, up_axis: str) -> float:
+    """Azimuth (``place_camera``'s convention) of a camera that looks at the body's front.
+    root_orient: (3,) world axis-angle of the pelvis (SMPL: the body faces its local +z)."""
+    from uuomocap.solver_core.motions import axis_angle_to_matrices
+
+    ui = up_index(up_axis)
+    up = np.zeros(3)
+    up[ui] = 1.0
+    facing = axis_angle_to_matrices(np.asarray(root_orient, np.float64))[:, 2]
+    view = -(facing - up * facing[ui])  # the camera looks against the body's facing
+    if np.linalg.norm(view) < 1e-6:
+        return 0.0
+    fwd0 = np.array([0.0, 1.0, 0.0]) if up_axis == "+z" else np.array([0.0, 0.0, 1.0])
+    return float(np.arctan2(np.dot(up, np.cross(fwd0, view)), np.dot(fwd0, view)))
+
+
+def contact_sheet(model, vertices: np.ndarray, joints: np.ndarray, root_orient: np.ndarray,
+                  up_axis: str = "+z", markers: np.ndarray | None = None, marker_points: np.ndarray | None = None,
+                  marker_parts: list[str] | None = None, gt_joints: np.ndarray | None = None,
+                  captions: list[str] | None = None, tile: tuple[int, int] = (240, 320), title: str = "") -> np.ndarray:
+    """A BGR image: one column per frame, rows = front and side views of the solved body.
+
+    vertices (K, N, 3), joints (K, 24, 3), root_orient (K, 3): the K frames to draw, world metres /
+    axis-angle.  markers (K, M, 3) with NaN where unseen, drawn as dots coloured by ``marker_parts`` (red =
+    unlabelled), each joined by a line to its solved surface point ``marker_points`` (K, M, 3) -
+    the residual the solve left.  gt_joints (K, 24, 3): the reference skeleton, drawn as thin
+    white lines.  Each tile's camera is placed for its own frame (``place_camera``), facing
+    the body (front) and from its left (side).
+    """
+    from uuomocap.solver_core.body_model import SMPL_PARENTS
+    from uuomocap.solver_core.camera import place_camera
+
+    w, h = tile
+    palette: dict[str, tuple[int, int, int]] = {}
+    for name in sorted(set(marker_parts or [])):
+        if name:
+            palette[name] = _PART_BGR[len(palette) % len(_PART_BGR)]
+    rows = []
+    for side in (0.0, 0.5 * np.pi):
+        tiles = []
+        for f in range(len(vertices)):
+            az = facing_azimuth(root_orient[f], up_axis) + side
+            cam = place_camera(joints[f, :1], up_axis, az, w, h, vfov_deg=32.0, camera_height_m=1.0, body_height_m=1.9)
+            img = BodyRenderer(model, cam, up_axis).render(vertices[f], feet=joints[f, [7, 8, 10, 11, 0]])
+
+            def px(p):
+                uv, z = cam.project(np.asarray(p, np.float64))
+                return (int(round(uv[0])), int(round(uv[1]))) if z > 0 else None
+
+            if gt_joints is not None:
+                for child, parent in enumerate(SMPL_PARENTS):
+                    if parent < 0:
+                        continue
+                    a, b = px(gt_joints[f, parent]), px(gt_joints[f, child])
+                    if a and b:
+                        cv2.line(img, a, b, (255, 255, 255), 1, cv2.LINE_AA)
+            if markers is not None:
+                for m in range(markers.shape[1]):
+                    p = markers[f, m]
+                    if not np.isfinite(p).all():
+                        continue
+                    a = px(p)
+                    if a is None:
+                        continue
+                    part = marker_parts[m] if marker_parts is not None else ""
+                    colour = palette.get(part, UNLABELLED_BGR)
+                    if marker_points is not None and np.isfinite(marker_points[f, m]).all():
+                        b = px(marker_points[f, m])
+                        if b:
+                            cv2.line(img, a, b, (0, 220, 255), 1, cv2.LINE_AA)
+                    cv2.circle(img, a, 3, colour, -1, cv2.LINE_AA)
+                    if colour == UNLABELLED_BGR:
+                        cv2.circle(img, a, 5, colour, 1, cv2.LINE_AA)
+            label = (captions[f] if captions else f"frame {f}") + ("" if side == 0.0 else " (side)")
+            cv2.putText(img, label, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (20, 20, 20), 1, cv2.LINE_AA)
+            tiles.append(img)
+        rows.append(np.concatenate(tiles, axis=1))
+    sheet = np.concatenate(rows, axis=0)
+    if title:
+        strip = np.full((22, sheet.shape[1], 3), 255, np.uint8)
+        cv2.putText(strip, title[: sheet.shape[1] // 7], (4, 15), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+        sheet = np.concatenate([strip, sheet], axis=0)
+    return sheet

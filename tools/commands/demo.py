@@ -69,12 +69,18 @@ def _handler(args) -> int:
 
     print("[3/3] accuracy against the session's ground truth", flush=True)
     res = evaluate_paths(pred, session / "gt.npz", session / "markers.c3d")
+    from uuomocap.commands.render import render_sheet
+
+    try:  # look at a solve before trusting it
+        where["contact_sheet"] = render_sheet(pred, pred.with_suffix(".png"), session)["png"]
+    except UserError as exc:  # a picture is not worth failing the run that solved
+        print(f"(no contact sheet: {exc})", flush=True)
     data = {"session": str(session), "mode": "graph" if use_graph else "offline", **where,
             "seconds": {"generate": round(t_gen, 2), "solve": round(t_solve, 2)}, "metrics": res}
     text = "\n".join([
-        f"session:    {session}",
-        *(f"{k + ':':<11} {v}" for k, v in where.items()),
-        f"time:       generate {t_gen:.1f} s, {'replay+solve' if use_graph else 'solve'} {t_solve:.1f} s",
+        f"session:       {session}",
+        *(f"{k + ':':<14} {v}" for k, v in where.items()),
+        f"time:          generate {t_gen:.1f} s, {'replay+solve' if use_graph else 'solve'} {t_solve:.1f} s",
         format_metrics(res),
     ])
     emit(args, data, text)

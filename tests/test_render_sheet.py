@@ -1,0 +1,74 @@
+"""``uuomocap render``: the contact sheet of a solve draws the body, its markers by label, and the reference."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+
+@pytest.fixture(scope="module")
+def solved(tmp_path_factory):
+    """A small session and an OUT.npz that is its ground truth, with one marker left unlabelled."""
+    from uuomocap.cli import main
+    from uuomocap.protocol.session import read_npz, write_npz
+    from uuomocap.solver_core.body_model import load_body_model
+    from uuomocap.solver_core.metrics import attachment_joint_names
+
+    root = tmp_path_factory.mktemp("render")
+    sd = root / "s"
+    assert main(["sample", "make", str(sd), "--motion", "walk", "--duration", "2", "--rate", "30", "--markers", "20",
+                 "--no-video", "--seed", "3", "--quiet"]) == 0
+    gt = read_npz(sd / "gt.npz")
+    faces = np.asarray(gt["marker_faces"], np.int64).copy()
+    bary = np.asarray(gt["marker_bary"], np.float64)
+    parts = attachment_joint_names(load_body_model(str(gt["body_model"])), faces, bary)
+    faces[0] = -1
+    parts[0] = ""
+    out = {k: gt[k] for k in ("betas", "poses", "trans", "joints", "mocap_framerate", "body_model", "stamps_ns")}
+    out.update(marker_faces=faces, marker_bary=bary, marker_parts=np.array(parts), method=np.str_("truth"))
+    write_npz(root / "out.npz", out)
+    return sd, root / "out.npz", parts
+
+
+def test_contact_sheet_shows_the_frames_markers_by_part_and_the_reference(solved, tmp_path, capsys):
+    import cv2
+
+    from uuomocap.cli import main
+    from uuomocap.render import _PART_BGR, UNLABELLED_BGR
+
+    sd, out, parts = solved
+    png = tmp_path / "sheet.png"
+    assert main(["render", str(out), "--session", str(sd), "--out", str(png), "--frames", "4", "--tile", "160x200", "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["frames"] == [0, 20, 39, 59] and info["markers"] == 20 and info["labelled"] == 19
+    assert info["frame_mpjpe_mm"] == [0.0] * 4  # the solve is the reference
+    img = cv2.imread(str(png))
+    assert img.shape == (22 + 2 * 200, 4 * 160, 3)  # title strip, front + side rows, one column per frame
+    colours = {tuple(int(c) for c in px) for px in img.reshape(-1, 3)}
+    labelled_parts = sorted({p for p in parts if p})
+    drawn = [c for c in _PART_BGR[: len(labelled_parts)] if c in colours]
+    assert len(drawn) == min(len(labelled_parts), len(_PART_BGR)), (labelled_parts, drawn)
+    assert UNLABELLED_BGR in colours  # the marker left unlabelled
+    assert (255, 255, 255) in colours  # the reference skeleton over the body
+
+
+def test_render_without_markers_and_its_errors(solved, tmp_path, capsys):
+    from uuomocap.cli import main
+
+    sd, out, _ = solved
+    png = tmp_path / "bare.png"
+    assert main(["render", str(out), "--out", str(png), "--frames", "0,59"]) == 0
+    assert png.is_file()
+    capsys.readouterr()
+    assert main(["render", str(out), "--frames", "0,60"]) == 2
+    assert "frames 0-59" in capsys.readouterr().err
+    assert main(["render", str(out), "--frames", "60"]) == 2  # a count, too many columns
+    assert "1-24" in capsys.readouterr().err
+    assert main(["render", str(out), "--out", str(tmp_path / "x.jpg")]) == 2
+    assert ".png" in capsys.readouterr().err
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, poses=np.zeros((3, 72)))
+    assert main(["render", str(bad)]) == 2
+    assert "missing key" in capsys.readouterr().err
