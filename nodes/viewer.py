@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import sys
 import time
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,20 +58,41 @@ class Viewer(Node):
         self.solved = self.markers = None
         self.latency_ms = {"solved": float("nan"), "markers": float("nan")}
         self.frames_drawn = 0
+        self._estimate_at = -1e9
+        self._last_status, self._last_print = "", -1e9
+        self._recent: OrderedDict = OrderedDict()  # frame_index -> MarkerFrame (the ones not skipped)
 
     def on_solved(self, msg, env) -> None:
         if msg.kind == "revised":
             return  # a past frame re-solved after a lock upgrade, for the recording: the view stays live
+        now = time.monotonic()
+        if msg.kind == "estimate":
+            self._estimate_at = now
+        elif now - self._estimate_at < 1.0:
+            return  # estimates flow: show the newest frame, not one a fixed lag behind it
         self.solved = msg
         self.latency_ms["solved"] = (time.monotonic_ns() - env.publish_ns) / 1e6
 
     def on_markers(self, msg, env) -> None:
         self.markers = msg
+        self._recent[msg.frame_index] = msg
+        while len(self._recent) > 256:
+            self._recent.popitem(last=False)
         self.latency_ms["markers"] = (time.monotonic_ns() - env.publish_ns) / 1e6
+
+    def drawn_markers(self):
+        """The markers of the drawn solved frame when the viewer kept them, else the newest: a body
+        drawn over another frame's markers looks off by however far the subject moved between them."""
+        if self.solved is not None and self.solved.frame_index in self._recent:
+            return self._recent[self.solved.frame_index]
+        return self.markers
 
     def on_timer(self) -> None:
         if self.config.status:
-            print(self.status_line(), file=sys.stderr, flush=True)
+            line, now = self.status_line(), time.monotonic()
+            if line != self._last_status or now - self._last_print >= 5.0:  # quiet while nothing arrives
+                print(line, file=sys.stderr, flush=True)
+                self._last_status, self._last_print = line, now
         if self.config.out_png and (self.solved is not None or self.markers is not None):
             self.draw(self.config.out_png)
 
@@ -88,10 +110,11 @@ class Viewer(Node):
     def draw(self, path: str) -> None:
         import cv2
 
-        up = self.markers.up_axis if self.markers is not None else "+z"
+        markers = self.drawn_markers()
+        up = markers.up_axis if markers is not None else "+z"
         pts = []
-        if self.markers is not None:
-            pts.append(project(np.asarray(self.markers.positions[self.markers.visible], np.float64), up))
+        if markers is not None:
+            pts.append(project(np.asarray(markers.positions[markers.visible], np.float64), up))
         if self.solved is not None:
             pts.append(project(np.asarray(self.solved.joints, np.float64), up))
         allp = np.concatenate(pts) if pts else np.zeros((0, 2))
@@ -107,7 +130,7 @@ class Viewer(Node):
                 q = (p - centre) * scale
                 return int(n / 2 + q[0]), int(n / 2 - q[1])
 
-            if self.markers is not None:
+            if markers is not None:
                 for p in pts[0]:
                     cv2.circle(img, px(p), 3, (40, 40, 220), -1)
             if self.solved is not None:

@@ -247,6 +247,19 @@ def test_shipped_session_graphs_name_missing_plugins(tmp_path):
     assert "video_prior" in [n.name for n in spec.nodes] and "prior" not in [n.name for n in spec.nodes]
 
 
+def test_shipped_graphs_add_the_viewer_on_request():
+    """view:=true adds the viewer (on the tracked markers in the live graphs), view_png:= its image."""
+    for name, markers in (("live_natnet", "markers/tracked"), ("live_qtm", "markers/tracked")):
+        assert "viewer" not in [n.name for n in load_launch(name, {}).nodes]
+        spec = load_launch(name, {"view": True, "view_png": "/tmp/view.png"})
+        (viewer,) = [n for n in spec.nodes if n.name == "viewer"]
+        assert viewer.plugin == "viewer" and viewer.params == {"out_png": "/tmp/view.png"}
+        assert viewer.remaps == {"markers/raw": markers}
+        validate(spec)
+        (viewer,) = [n for n in load_launch(name, {"view": True}).nodes if n.name == "viewer"]
+        assert viewer.params == {"out_png": ""}  # a status line only
+
+
 def make_session(d: Path, seconds: float = 1.5, offset_s: float = 0.1) -> tuple[int, np.ndarray]:
     d.mkdir(parents=True, exist_ok=True)
     T = int(seconds * 120)
@@ -576,3 +589,14 @@ def test_viewer_draws_skeleton_and_markers(tmp_path):
     assert v.solved is live
     v.on_solved(dataclasses.replace(live, frame_index=1), types.SimpleNamespace(publish_ns=0))
     assert v.solved.frame_index == 1
+    # while estimates flow, a refined frame (a fixed lag behind) does not replace the newest one
+    v.on_solved(dataclasses.replace(live, kind="refined", frame_index=-9), types.SimpleNamespace(publish_ns=0))
+    assert v.solved.frame_index == 1
+    # the markers drawn are the drawn body's frame's when the viewer kept them, not the newest
+    env = types.SimpleNamespace(publish_ns=0)
+    for i in (1, 2, 3):
+        v.on_markers(MarkerFrame(stamp_ns=i, frame_index=i, positions=joints[:5] + 0.01 * i, visible=np.ones(5, bool)), env)
+    assert v.drawn_markers().frame_index == 1
+    v._estimate_at -= 2.0  # the estimates stopped (the take's end): refined frames are the newest news
+    v.on_solved(dataclasses.replace(live, kind="refined", frame_index=7), env)
+    assert v.solved.frame_index == 7 and v.drawn_markers().frame_index == 3  # frame 7's markers were never seen
