@@ -72,3 +72,26 @@ def test_render_without_markers_and_its_errors(solved, tmp_path, capsys):
     np.savez(bad, poses=np.zeros((3, 72)))
     assert main(["render", str(bad)]) == 2
     assert "missing key" in capsys.readouterr().err
+
+
+def test_render_writes_a_video_of_the_take(solved, tmp_path, capsys):
+    import cv2
+
+    from uuomocap.cli import main
+
+    sd, out, _ = solved
+    mp4 = tmp_path / "take.mp4"
+    assert main(["render", str(out), "--session", str(sd), "--out", str(tmp_path / "s.png"), "--video", str(mp4),
+                 "--stride", "3", "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["video"]["frames"] == 20 and info["video"]["fps"] == 10.0  # 60 frames at 30 Hz, every third
+    cap = cv2.VideoCapture(str(mp4))
+    try:
+        assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 20
+        ok, frame = cap.read()
+        assert ok and frame.shape == (480, 640, 3)
+        assert frame.std() > 10  # a body on the floor, not a blank frame
+    finally:
+        cap.release()
+    assert main(["render", str(out), "--video", str(tmp_path / "x.avi")]) == 2
+    assert ".mp4" in capsys.readouterr().err

@@ -281,20 +281,84 @@ _PART_BGR = ((200, 120, 0), (0, 160, 0), (170, 0, 170), (0, 150, 200), (120, 60,
 UNLABELLED_BGR = (0, 0, 230)
 
 
-def facing_azimuth(root_orient: np.ndarray, up_axis: str) -> float:
-    """Azimuth (``place_camera``'s convention) of a camera that looks at the body's front.
-    root_orient: (3,) world axis-angle of the pelvis (SMPL: the body faces its local +z)."""
-    from uuomocap.solver_core.motions import axis_angle_to_matrices
-
+def view_azimuth(facing: np.ndarray, up_axis: str) -> float:
+    """Azimuth (``place_camera``'s convention) of a camera that looks against ``facing`` (3,): at
+    the front of a body facing that way."""
     ui = up_index(up_axis)
     up = np.zeros(3)
     up[ui] = 1.0
-    facing = axis_angle_to_matrices(np.asarray(root_orient, np.float64))[:, 2]
-    view = -(facing - up * facing[ui])  # the camera looks against the body's facing
+    view = -(np.asarray(facing, np.float64) - up * facing[ui])
     if np.linalg.norm(view) < 1e-6:
         return 0.0
     fwd0 = np.array([0.0, 1.0, 0.0]) if up_axis == "+z" else np.array([0.0, 0.0, 1.0])
     return float(np.arctan2(np.dot(up, np.cross(fwd0, view)), np.dot(fwd0, view)))
+
+
+def facing_azimuth(root_orient: np.ndarray, up_axis: str) -> float:
+    """``view_azimuth`` of a pelvis orientation (3,) world axis-angle (SMPL: the body faces its local +z)."""
+    from uuomocap.solver_core.motions import axis_angle_to_matrices
+
+    return view_azimuth(axis_angle_to_matrices(np.asarray(root_orient, np.float64))[:, 2], up_axis)
+
+
+def mean_facing_azimuth(root_orient: np.ndarray, up_axis: str) -> float:
+    """``view_azimuth`` of the take's mean facing (root_orient (F, 3))."""
+    from uuomocap.solver_core.motions import axis_angle_to_matrices
+
+    return view_azimuth(axis_angle_to_matrices(np.asarray(root_orient, np.float64))[:, :, 2].mean(axis=0), up_axis)
+
+
+def part_palette(marker_parts: list[str] | None) -> dict[str, tuple[int, int, int]]:
+    """A BGR colour per labelled part name (sorted, so the same parts get the same colours)."""
+    palette: dict[str, tuple[int, int, int]] = {}
+    for name in sorted(set(marker_parts or [])):
+        if name:
+            palette[name] = _PART_BGR[len(palette) % len(_PART_BGR)]
+    return palette
+
+
+def draw_overlays(img: np.ndarray, cam: PinholeCamera, markers: np.ndarray | None = None, marker_points: np.ndarray | None = None,
+                  marker_parts: list[str] | None = None, palette: dict | None = None, gt_joints: np.ndarray | None = None,
+                  label: str = "") -> np.ndarray:
+    """Draw one frame's markers (M, 3) (NaN = unseen; dots by part, red ring = unlabelled), the line
+    from each to its solved surface point (M, 3), the reference skeleton (24, 3) in white and a
+    label onto ``img`` (BGR, in place) as ``cam`` sees them."""
+    from uuomocap.solver_core.body_model import SMPL_PARENTS
+
+    def px(p):
+        uv, z = cam.project(np.asarray(p, np.float64))
+        return (int(round(uv[0])), int(round(uv[1]))) if z > 0 and np.isfinite(uv).all() else None
+
+    if gt_joints is not None:
+        for child, parent in enumerate(SMPL_PARENTS):
+            if parent < 0:
+                continue
+            a, b = px(gt_joints[parent]), px(gt_joints[child])
+            if a and b:
+                cv2.line(img, a, b, (255, 255, 255), 1, cv2.LINE_AA)
+    if markers is not None:
+        palette = palette if palette is not None else part_palette(marker_parts)
+        for m in range(markers.shape[0]):
+            if not np.isfinite(markers[m]).all():
+                continue
+            a = px(markers[m])
+            if a is None:
+                continue
+            colour = palette.get(marker_parts[m] if marker_parts is not None else "", UNLABELLED_BGR)
+            if marker_points is not None and np.isfinite(marker_points[m]).all():
+                b = px(marker_points[m])
+                if b:
+                    cv2.line(img, a, b, (0, 220, 255), 1, cv2.LINE_AA)
+            cv2.circle(img, a, 3, colour, -1, cv2.LINE_AA)
+            if colour == UNLABELLED_BGR:
+                cv2.circle(img, a, 5, colour, 1, cv2.LINE_AA)
+    if label:
+        cv2.putText(img, label, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (20, 20, 20), 1, cv2.LINE_AA)
+    return img
+
+
+def _frame(a: np.ndarray | None, f: int) -> np.ndarray | None:
+    return None if a is None else a[f]
 
 
 def contact_sheet(model, vertices: np.ndarray, joints: np.ndarray, root_orient: np.ndarray,
@@ -304,20 +368,14 @@ def contact_sheet(model, vertices: np.ndarray, joints: np.ndarray, root_orient: 
     """A BGR image: one column per frame, rows = front and side views of the solved body.
 
     vertices (K, N, 3), joints (K, 24, 3), root_orient (K, 3): the K frames to draw, world metres /
-    axis-angle.  markers (K, M, 3) with NaN where unseen, drawn as dots coloured by ``marker_parts`` (red =
-    unlabelled), each joined by a line to its solved surface point ``marker_points`` (K, M, 3) -
-    the residual the solve left.  gt_joints (K, 24, 3): the reference skeleton, drawn as thin
-    white lines.  Each tile's camera is placed for its own frame (``place_camera``), facing
-    the body (front) and from its left (side).
+    axis-angle.  markers (K, M, 3) with NaN where unseen, marker_points (K, M, 3) their solved
+    surface points, gt_joints (K, 24, 3) the reference: ``draw_overlays``.  Each tile's camera is
+    placed for its own frame (``place_camera``), facing the body (front) and from its left (side).
     """
-    from uuomocap.solver_core.body_model import SMPL_PARENTS
     from uuomocap.solver_core.camera import place_camera
 
     w, h = tile
-    palette: dict[str, tuple[int, int, int]] = {}
-    for name in sorted(set(marker_parts or [])):
-        if name:
-            palette[name] = _PART_BGR[len(palette) % len(_PART_BGR)]
+    palette = part_palette(marker_parts)
     rows = []
     for side in (0.0, 0.5 * np.pi):
         tiles = []
@@ -325,38 +383,9 @@ def contact_sheet(model, vertices: np.ndarray, joints: np.ndarray, root_orient: 
             az = facing_azimuth(root_orient[f], up_axis) + side
             cam = place_camera(joints[f, :1], up_axis, az, w, h, vfov_deg=32.0, camera_height_m=1.0, body_height_m=1.9)
             img = BodyRenderer(model, cam, up_axis).render(vertices[f], feet=joints[f, [7, 8, 10, 11, 0]])
-
-            def px(p):
-                uv, z = cam.project(np.asarray(p, np.float64))
-                return (int(round(uv[0])), int(round(uv[1]))) if z > 0 else None
-
-            if gt_joints is not None:
-                for child, parent in enumerate(SMPL_PARENTS):
-                    if parent < 0:
-                        continue
-                    a, b = px(gt_joints[f, parent]), px(gt_joints[f, child])
-                    if a and b:
-                        cv2.line(img, a, b, (255, 255, 255), 1, cv2.LINE_AA)
-            if markers is not None:
-                for m in range(markers.shape[1]):
-                    p = markers[f, m]
-                    if not np.isfinite(p).all():
-                        continue
-                    a = px(p)
-                    if a is None:
-                        continue
-                    part = marker_parts[m] if marker_parts is not None else ""
-                    colour = palette.get(part, UNLABELLED_BGR)
-                    if marker_points is not None and np.isfinite(marker_points[f, m]).all():
-                        b = px(marker_points[f, m])
-                        if b:
-                            cv2.line(img, a, b, (0, 220, 255), 1, cv2.LINE_AA)
-                    cv2.circle(img, a, 3, colour, -1, cv2.LINE_AA)
-                    if colour == UNLABELLED_BGR:
-                        cv2.circle(img, a, 5, colour, 1, cv2.LINE_AA)
             label = (captions[f] if captions else f"frame {f}") + ("" if side == 0.0 else " (side)")
-            cv2.putText(img, label, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (20, 20, 20), 1, cv2.LINE_AA)
-            tiles.append(img)
+            tiles.append(draw_overlays(img, cam, _frame(markers, f), _frame(marker_points, f), marker_parts, palette,
+                                       _frame(gt_joints, f), label))
         rows.append(np.concatenate(tiles, axis=1))
     sheet = np.concatenate(rows, axis=0)
     if title:
@@ -364,3 +393,48 @@ def contact_sheet(model, vertices: np.ndarray, joints: np.ndarray, root_orient: 
         cv2.putText(strip, title[: sheet.shape[1] // 7], (4, 15), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
         sheet = np.concatenate([strip, sheet], axis=0)
     return sheet
+
+
+def solve_video(model, betas: np.ndarray, poses: np.ndarray, trans: np.ndarray, joints: np.ndarray, path: str | Path,
+                fps: float, up_axis: str = "+z", markers: np.ndarray | None = None, marker_faces: np.ndarray | None = None,
+                marker_bary: np.ndarray | None = None, marker_parts: list[str] | None = None,
+                gt_joints: np.ndarray | None = None, captions: list[str] | None = None, size: tuple[int, int] = (640, 480),
+                frames: np.ndarray | None = None, progress=None) -> dict:
+    """An mp4v video of a solve from one fixed camera facing the body's mean facing, with the overlays
+    of ``draw_overlays`` on every frame.  betas (B,) or (F, B); poses (F, 72), trans (F, 3), joints
+    (F, 24, 3); markers (F, M, 3) NaN where unseen; marker_faces (M,) (-1 = unlabelled) and
+    marker_bary (M, 3) the solved surface points; frames: the indices to draw (default all).
+    Vertices are posed 64 frames at a time, so memory does not grow with the take."""
+    from uuomocap.solver_core.camera import place_camera
+    from uuomocap.solver_core.metrics import posed_vertices
+
+    idx = np.arange(poses.shape[0]) if frames is None else np.asarray(frames, dtype=np.int64)
+    w, h = size
+    cam = place_camera(joints[idx, 0], up_axis, mean_facing_azimuth(poses[idx, :3], up_axis), w, h, vfov_deg=40.0,
+                       camera_height_m=1.0, body_height_m=1.9)
+    renderer = BodyRenderer(model, cam, up_axis)
+    palette = part_palette(marker_parts)
+    tri = None
+    if marker_faces is not None:
+        ok = np.asarray(marker_faces) >= 0
+        tri = model.faces.numpy()[np.where(ok, marker_faces, 0)]
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
+    if not writer.isOpened():
+        raise RuntimeError(f"OpenCV cannot open an mp4v writer for {path}")
+    b_all = np.asarray(betas, np.float64)
+    try:
+        for s in range(0, len(idx), 64):
+            chunk = idx[s:s + 64]
+            verts = posed_vertices(model, b_all[chunk] if b_all.ndim == 2 else b_all, poses[chunk], trans[chunk])
+            for k, f in enumerate(chunk):
+                img = renderer.render(verts[k], feet=joints[f, [7, 8, 10, 11, 0]])
+                points = None
+                if tri is not None:
+                    points = np.where(ok[:, None], (verts[k][tri] * np.asarray(marker_bary)[:, :, None]).sum(1), np.nan)
+                writer.write(draw_overlays(img, cam, _frame(markers, f), points, marker_parts, palette, _frame(gt_joints, f),
+                                           captions[f] if captions else f"frame {f}"))
+                if progress is not None:
+                    progress(1)
+    finally:
+        writer.release()
+    return {"frames": int(len(idx)), "width": w, "height": h, "fps": float(fps)}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +30,8 @@ def register(subparsers) -> None:
     p.add_argument("--frames", default="6", help="a count of evenly spaced frames (default 6, at most 24), or indices '0,120,240' (one: '120,')")
     p.add_argument("--tile", default="240x320", help="width x height of one view in pixels (default 240x320)")
     p.add_argument("--up-axis", choices=("+z", "+y"), help="world up axis (default: the session's / marker file's, else +z)")
+    p.add_argument("--video", metavar="MP4", help="also write a video of the take from one fixed camera, with the same overlays")
+    p.add_argument("--stride", type=int, default=1, help="video: every Nth frame (default 1; the video plays in real time)")
     add_json_flag(p)
     p.set_defaults(func=_handler)
 
@@ -74,23 +77,78 @@ def _handler(args) -> int:
         raise UserError(f"--tile {args.tile!r}: give WIDTHxHEIGHT, each at least 64 pixels") from None
     pred_path = Path(args.pred)
     out = Path(args.out) if args.out else pred_path.with_suffix(".png")
-    info = render_sheet(pred_path, out, Path(args.session) if args.session else None, args.markers,
-                        Path(args.gt) if args.gt else None, args.frames, (tw, th), args.up_axis)
-    emit(args, info, f"wrote {out} ({info['width']}x{info['height']}, frames {', '.join(map(str, info['frames']))})")
+    solve = load_solve(pred_path, Path(args.session) if args.session else None, args.markers,
+                       Path(args.gt) if args.gt else None, args.up_axis)
+    info = render_sheet(solve, out, args.frames, (tw, th))
+    text = f"wrote {out} ({info['width']}x{info['height']}, frames {', '.join(map(str, info['frames']))})"
+    if args.video:
+        if args.stride < 1:
+            raise UserError(f"--stride {args.stride}: give 1 or more")
+        import sys
+
+        from tqdm import tqdm
+
+        video = Path(args.video)
+        if video.suffix.lower() != ".mp4":
+            raise UserError(f"--video {video}: the video is an .mp4")
+        n = len(range(0, solve.n, args.stride))
+        with tqdm(total=n, desc="render video", unit="frame", file=sys.stderr, disable=args.json, leave=False) as bar:
+            info["video"] = render_solve_video(solve, video, args.stride, progress=bar.update)
+        text += f"\nwrote {video} ({n} frames at {info['video']['fps']:g} fps)"
+    emit(args, info, text)
     return 0
 
 
-def render_sheet(pred_path: Path, out: Path, session: Path | None = None, markers_file: str | None = None,
-                 gt_path: Path | None = None, frames_spec: str = "6", tile: tuple[int, int] = (240, 320),
-                 up_axis: str | None = None) -> dict:
-    """Write the contact sheet of ``pred_path`` to ``out`` (PNG); returns what was drawn."""
-    import cv2
+@dataclass
+class Solve:
+    """A solved OUT.npz with what it is drawn against."""
 
+    path: Path
+    pred: dict
+    model: object
+    poses: np.ndarray  # (F, 72)
+    trans: np.ndarray  # (F, 3)
+    joints: np.ndarray  # (F, 24, 3)
+    betas: np.ndarray  # (B,) or (F, B)
+    up_axis: str
+    rate_hz: float
+    markers: np.ndarray | None = None  # (F, M, 3), NaN where unseen, aligned to the solve's frames
+    gt_joints: np.ndarray | None = None  # (F, 24, 3)
+    gt_name: str = ""
+
+    @property
+    def n(self) -> int:
+        return self.poses.shape[0]
+
+    @property
+    def labels(self):
+        """(faces (M,), bary (M, 3), parts [M]) when the solve's labels match the markers, else Nones."""
+        p = self.pred
+        if self.markers is None or "marker_faces" not in p or len(p["marker_faces"]) != self.markers.shape[1]:
+            return None, None, None
+        faces = np.asarray(p["marker_faces"], np.int64)
+        return faces, np.asarray(p["marker_bary"], np.float64), [str(x) for x in p.get("marker_parts", [""] * len(faces))]
+
+    def frame_errors(self, idx) -> np.ndarray | None:
+        """(K,) MPJPE mm of frames ``idx`` against the reference, or None without one."""
+        from uuomocap.solver_core.metrics import joint_errors
+
+        if self.gt_joints is None:
+            return None
+        return joint_errors(self.joints[idx], self.gt_joints[idx]).mean(axis=1)
+
+    def captions(self, idx) -> list[str]:
+        err = self.frame_errors(idx)
+        return [f"frame {f}" + (f"  {f / self.rate_hz:.2f} s" if np.isfinite(self.rate_hz) else "")
+                + (f"  {err[i]:.0f} mm" if err is not None else "") for i, f in enumerate(idx)]
+
+
+def load_solve(pred_path: Path, session: Path | None = None, markers_file: str | None = None, gt_path: Path | None = None,
+               up_axis: str | None = None) -> Solve:
+    """Read and check OUT.npz, its markers (a session's or a file's) and its reference."""
     from uuomocap.protocol.markerio import MarkerFileError, read_markers
     from uuomocap.protocol.session import SessionError, load_session, read_npz
-    from uuomocap.render import contact_sheet
     from uuomocap.solver_core.body_model import load_body_model
-    from uuomocap.solver_core.metrics import joint_errors, posed_vertices
 
     if not pred_path.is_file():
         raise UserError(f"{pred_path}: file not found")
@@ -105,10 +163,6 @@ def render_sheet(pred_path: Path, out: Path, session: Path | None = None, marker
     n = poses.shape[0]
     if poses.shape != (n, 72) or trans.shape != (n, 3) or joints.shape != (n, 24, 3):
         raise UserError(f"{pred_path}: poses {poses.shape} / trans {trans.shape} / joints {joints.shape} must be (F, 72) / (F, 3) / (F, 24, 3)")
-    frames = _frames(frames_spec, n)
-    if out.suffix.lower() != ".png":
-        raise UserError(f"--out {out}: the contact sheet is a .png")
-
     md = None
     if session is not None:
         try:
@@ -127,52 +181,80 @@ def render_sheet(pred_path: Path, out: Path, session: Path | None = None, marker
     up_axis = up_axis or "+z"
     if up_axis not in ("+z", "+y"):
         raise UserError(f"up axis {up_axis!r}: render draws +z or +y worlds (give --up-axis)")
-
-    sel = np.asarray(frames)
     name = str(pred["body_model"]) if "body_model" in pred else "open-low"
     try:
         model = load_body_model(name)
     except (ValueError, OSError) as exc:
         raise UserError(f"{pred_path}: cannot load body model {name!r} ({exc})") from None
-    betas = np.asarray(pred["frame_betas"], np.float64)[sel] if "frame_betas" in pred else np.asarray(pred["betas"], np.float64)
-    if not (np.isfinite(poses[sel]).all() and np.isfinite(trans[sel]).all() and np.isfinite(betas).all()):
-        raise UserError(f"{pred_path}: the chosen frames hold NaN or inf (unsolved frames); pick others with --frames")
-    vertices = posed_vertices(model, betas, poses[sel], trans[sel])  # (K, N, 3): the drawn frames only
-
-    markers = points = parts = None
-    labelled = 0
+    betas = np.asarray(pred["frame_betas"] if "frame_betas" in pred else pred["betas"], np.float64)
+    markers = None
     if md is not None:
-        rows = _align(pred.get("stamps_ns"), md, n)[sel]
-        markers = np.where(md.visible[rows][..., None], md.positions[rows], np.nan)  # (K, M, 3)
-        if "marker_faces" in pred and len(pred["marker_faces"]) == markers.shape[1]:
-            faces = np.asarray(pred["marker_faces"], np.int64)
-            bary = np.asarray(pred["marker_bary"], np.float64)
-            parts = [str(p) for p in pred.get("marker_parts", [""] * len(faces))]
-            ok = faces >= 0
-            labelled = int(ok.sum())
-            tri = model.faces.numpy()[np.where(ok, faces, 0)]  # (M, 3)
-            points = np.where(ok[None, :, None], (vertices[:, tri] * bary[None, :, :, None]).sum(2), np.nan)
-
-    gt_joints, err = None, None
+        rows = _align(pred.get("stamps_ns"), md, n)
+        markers = np.where(md.visible[rows][..., None], md.positions[rows], np.nan)
+    gt_joints = None
     if gt_path is not None:
         if not gt_path.is_file():
             raise UserError(f"{gt_path}: file not found")
-        gj = np.asarray(read_npz(gt_path)["joints"], np.float64)
-        if gj.shape != joints.shape:
-            raise UserError(f"{gt_path}: joints {gj.shape} do not match the solve's {joints.shape}")
-        gt_joints, err = gj[sel], joint_errors(joints[sel], gj[sel]).mean(axis=1)  # (K,) mm per frame
+        gt_joints = np.asarray(read_npz(gt_path)["joints"], np.float64)
+        if gt_joints.shape != joints.shape:
+            raise UserError(f"{gt_path}: joints {gt_joints.shape} do not match the solve's {joints.shape}")
     rate = float(pred["mocap_framerate"]) if "mocap_framerate" in pred else float("nan")
-    captions = [f"frame {f}" + (f"  {f / rate:.2f} s" if np.isfinite(rate) else "") + (f"  {err[i]:.0f} mm" if err is not None else "")
-                for i, f in enumerate(frames)]
-    method = str(pred["method"]) if "method" in pred else "?"
-    title = f"{pred_path.name}: {method}, {n} frames" + (f", {markers.shape[1]} markers ({labelled} labelled)" if markers is not None else "")
+    return Solve(pred_path, pred, model, poses, trans, joints, betas, up_axis, rate, markers, gt_joints,
+                 gt_path.name if gt_path is not None else "")
+
+
+def _check_finite(solve: Solve, idx) -> None:
+    b = solve.betas[idx] if solve.betas.ndim == 2 else solve.betas
+    if not (np.isfinite(solve.poses[idx]).all() and np.isfinite(solve.trans[idx]).all() and np.isfinite(b).all()):
+        raise UserError(f"{solve.path}: the chosen frames hold NaN or inf (unsolved frames); pick others with --frames")
+
+
+def render_sheet(solve: Solve, out: Path, frames_spec: str = "6", tile: tuple[int, int] = (240, 320)) -> dict:
+    """Write the contact sheet of ``solve`` to ``out`` (PNG); returns what was drawn."""
+    import cv2
+
+    from uuomocap.render import contact_sheet
+    from uuomocap.solver_core.metrics import posed_vertices
+
+    frames = _frames(frames_spec, solve.n)
+    if out.suffix.lower() != ".png":
+        raise UserError(f"--out {out}: the contact sheet is a .png")
+    sel = np.asarray(frames)
+    _check_finite(solve, sel)
+    vertices = posed_vertices(solve.model, solve.betas[sel] if solve.betas.ndim == 2 else solve.betas,
+                              solve.poses[sel], solve.trans[sel])  # (K, N, 3): the drawn frames only
+    faces, bary, parts = solve.labels
+    markers = solve.markers[sel] if solve.markers is not None else None
+    points, labelled = None, 0
+    if faces is not None:
+        ok = faces >= 0
+        labelled = int(ok.sum())
+        tri = solve.model.faces.numpy()[np.where(ok, faces, 0)]  # (M, 3)
+        points = np.where(ok[None, :, None], (vertices[:, tri] * bary[None, :, :, None]).sum(2), np.nan)
+    err = solve.frame_errors(sel)
+    method = str(solve.pred["method"]) if "method" in solve.pred else "?"
+    title = f"{solve.path.name}: {method}, {solve.n} frames" + (f", {markers.shape[1]} markers ({labelled} labelled)" if markers is not None else "")
     if err is not None:
-        title += f"; these frames' MPJPE {err.mean():.1f} mm against {gt_path.name}"
-    sheet = contact_sheet(model, vertices, joints[sel], poses[sel, :3], up_axis, markers, points, parts, gt_joints,
-                          captions, tile, title)
+        title += f"; these frames' MPJPE {err.mean():.1f} mm against {solve.gt_name}"
+    sheet = contact_sheet(solve.model, vertices, solve.joints[sel], solve.poses[sel, :3], solve.up_axis, markers, points, parts,
+                          solve.gt_joints[sel] if solve.gt_joints is not None else None, solve.captions(sel), tile, title)
     out.parent.mkdir(parents=True, exist_ok=True)
     if not cv2.imwrite(str(out), sheet):
         raise UserError(f"{out}: could not write the image")
     return {"png": str(out), "frames": frames, "width": int(sheet.shape[1]), "height": int(sheet.shape[0]),
             "markers": int(markers.shape[1]) if markers is not None else 0, "labelled": labelled,
             "frame_mpjpe_mm": [round(float(e), 2) for e in err] if err is not None else None}
+
+
+def render_solve_video(solve: Solve, out: Path, stride: int = 1, size: tuple[int, int] = (640, 480), progress=None) -> dict:
+    """Every ``stride``-th frame of ``solve`` as an mp4 from one fixed camera (``render.solve_video``)."""
+    from uuomocap.render import solve_video
+
+    idx = np.arange(0, solve.n, stride)
+    _check_finite(solve, idx)
+    faces, bary, parts = solve.labels
+    fps = solve.rate_hz / stride if np.isfinite(solve.rate_hz) else 30.0
+    out.parent.mkdir(parents=True, exist_ok=True)
+    info = solve_video(solve.model, solve.betas, solve.poses, solve.trans, solve.joints, out, fps, solve.up_axis, solve.markers,
+                       faces, bary, parts, solve.gt_joints, dict(zip(idx.tolist(), solve.captions(idx))), size, idx, progress)
+    return {"mp4": str(out), **info}
