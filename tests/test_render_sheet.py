@@ -95,3 +95,13 @@ def test_render_writes_a_video_of_the_take(solved, tmp_path, capsys):
         cap.release()
     assert main(["render", str(out), "--video", str(tmp_path / "x.avi")]) == 2
     assert ".mp4" in capsys.readouterr().err
+
+
+def test_the_demo_sheet_lands_beside_the_solve(solved):
+    """``make demo`` calls this after its solve (``commands.demo``)."""
+    from uuomocap.commands.render import session_sheet
+
+    sd, out, _ = solved
+    info = session_sheet(out, sd)
+    assert info["png"] == str(out.with_suffix(".png")) and out.with_suffix(".png").is_file()
+    assert len(info["frames"]) == 6 and info["labelled"] == 19

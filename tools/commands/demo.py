@@ -69,10 +69,10 @@ def _handler(args) -> int:
 
     print("[3/3] accuracy against the session's ground truth", flush=True)
     res = evaluate_paths(pred, session / "gt.npz", session / "markers.c3d")
-    from uuomocap.commands.render import render_sheet
+    from uuomocap.commands.render import session_sheet
 
     try:  # look at a solve before trusting it
-        where["contact_sheet"] = render_sheet(pred, pred.with_suffix(".png"), session)["png"]
+        where["contact_sheet"] = session_sheet(pred, session)["png"]
     except UserError as exc:  # a picture is not worth failing the run that solved
         print(f"(no contact sheet: {exc})", flush=True)
     data = {"session": str(session), "mode": "graph" if use_graph else "offline", **where,

@@ -258,3 +258,8 @@ def render_solve_video(solve: Solve, out: Path, stride: int = 1, size: tuple[int
     info = solve_video(solve.model, solve.betas, solve.poses, solve.trans, solve.joints, out, fps, solve.up_axis, solve.markers,
                        faces, bary, parts, solve.gt_joints, dict(zip(idx.tolist(), solve.captions(idx))), size, idx, progress)
     return {"mp4": str(out), **info}
+
+
+def session_sheet(pred_path: Path, session: Path, out: Path | None = None) -> dict:
+    """The default contact sheet of a solve of ``session`` (beside OUT.npz unless ``out``): ``make demo``'s."""
+    return render_sheet(load_solve(pred_path, session), out or pred_path.with_suffix(".png"))
