@@ -357,6 +357,16 @@ def draw_overlays(img: np.ndarray, cam: PinholeCamera, markers: np.ndarray | Non
     return img
 
 
+def marker_surface_points(model, vertices: np.ndarray, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
+    """Posed surface points (..., M, 3) of markers labelled with face ``faces`` (M,) (-1 =
+    unlabelled: NaN) and barycentric ``bary`` (M, 3) on ``vertices`` (..., N, 3)."""
+    faces = np.asarray(faces, dtype=np.int64)
+    ok = faces >= 0
+    tri = model.faces.numpy()[np.where(ok, faces, 0)]  # (M, 3)
+    points = (vertices[..., tri, :] * np.asarray(bary, np.float64)[:, :, None]).sum(-2)
+    return np.where(ok[:, None], points, np.nan)
+
+
 def _frame(a: np.ndarray | None, f: int) -> np.ndarray | None:
     return None if a is None else a[f]
 
@@ -398,12 +408,13 @@ def contact_sheet(model, vertices: np.ndarray, joints: np.ndarray, root_orient: 
 def solve_video(model, betas: np.ndarray, poses: np.ndarray, trans: np.ndarray, joints: np.ndarray, path: str | Path,
                 fps: float, up_axis: str = "+z", markers: np.ndarray | None = None, marker_faces: np.ndarray | None = None,
                 marker_bary: np.ndarray | None = None, marker_parts: list[str] | None = None,
-                gt_joints: np.ndarray | None = None, captions: list[str] | None = None, size: tuple[int, int] = (640, 480),
+                gt_joints: np.ndarray | None = None, captions: dict[int, str] | None = None, size: tuple[int, int] = (640, 480),
                 frames: np.ndarray | None = None, progress=None) -> dict:
     """An mp4v video of a solve from one fixed camera facing the body's mean facing, with the overlays
     of ``draw_overlays`` on every frame.  betas (B,) or (F, B); poses (F, 72), trans (F, 3), joints
     (F, 24, 3); markers (F, M, 3) NaN where unseen; marker_faces (M,) (-1 = unlabelled) and
-    marker_bary (M, 3) the solved surface points; frames: the indices to draw (default all).
+    marker_bary (M, 3) the solved surface points; captions: per drawn frame index; frames: the
+    indices to draw (default all).
     Vertices are posed 64 frames at a time, so memory does not grow with the take."""
     from uuomocap.solver_core.camera import place_camera
     from uuomocap.solver_core.metrics import posed_vertices
@@ -414,10 +425,6 @@ def solve_video(model, betas: np.ndarray, poses: np.ndarray, trans: np.ndarray, 
                        camera_height_m=1.0, body_height_m=1.9)
     renderer = BodyRenderer(model, cam, up_axis)
     palette = part_palette(marker_parts)
-    tri = None
-    if marker_faces is not None:
-        ok = np.asarray(marker_faces) >= 0
-        tri = model.faces.numpy()[np.where(ok, marker_faces, 0)]
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
     if not writer.isOpened():
         raise RuntimeError(f"OpenCV cannot open an mp4v writer for {path}")
@@ -428,9 +435,7 @@ def solve_video(model, betas: np.ndarray, poses: np.ndarray, trans: np.ndarray, 
             verts = posed_vertices(model, b_all[chunk] if b_all.ndim == 2 else b_all, poses[chunk], trans[chunk])
             for k, f in enumerate(chunk):
                 img = renderer.render(verts[k], feet=joints[f, [7, 8, 10, 11, 0]])
-                points = None
-                if tri is not None:
-                    points = np.where(ok[:, None], (verts[k][tri] * np.asarray(marker_bary)[:, :, None]).sum(1), np.nan)
+                points = marker_surface_points(model, verts[k], marker_faces, marker_bary) if marker_faces is not None else None
                 writer.write(draw_overlays(img, cam, _frame(markers, f), points, marker_parts, palette, _frame(gt_joints, f),
                                            captions[f] if captions else f"frame {f}"))
                 if progress is not None:

@@ -187,6 +187,8 @@ def load_solve(pred_path: Path, session: Path | None = None, markers_file: str |
     except (ValueError, OSError) as exc:
         raise UserError(f"{pred_path}: cannot load body model {name!r} ({exc})") from None
     betas = np.asarray(pred["frame_betas"] if "frame_betas" in pred else pred["betas"], np.float64)
+    if betas.ndim == 2 and betas.shape[0] != n:
+        raise UserError(f"{pred_path}: frame_betas {betas.shape} must have a row per frame ({n})")
     markers = None
     if md is not None:
         rows = _align(pred.get("stamps_ns"), md, n)
@@ -213,7 +215,7 @@ def render_sheet(solve: Solve, out: Path, frames_spec: str = "6", tile: tuple[in
     """Write the contact sheet of ``solve`` to ``out`` (PNG); returns what was drawn."""
     import cv2
 
-    from uuomocap.render import contact_sheet
+    from uuomocap.render import contact_sheet, marker_surface_points
     from uuomocap.solver_core.metrics import posed_vertices
 
     frames = _frames(frames_spec, solve.n)
@@ -227,10 +229,8 @@ def render_sheet(solve: Solve, out: Path, frames_spec: str = "6", tile: tuple[in
     markers = solve.markers[sel] if solve.markers is not None else None
     points, labelled = None, 0
     if faces is not None:
-        ok = faces >= 0
-        labelled = int(ok.sum())
-        tri = solve.model.faces.numpy()[np.where(ok, faces, 0)]  # (M, 3)
-        points = np.where(ok[None, :, None], (vertices[:, tri] * bary[None, :, :, None]).sum(2), np.nan)
+        labelled = int((faces >= 0).sum())
+        points = marker_surface_points(solve.model, vertices, faces, bary)  # (K, M, 3)
     err = solve.frame_errors(sel)
     method = str(solve.pred["method"]) if "method" in solve.pred else "?"
     title = f"{solve.path.name}: {method}, {solve.n} frames" + (f", {markers.shape[1]} markers ({labelled} labelled)" if markers is not None else "")
