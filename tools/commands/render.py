@@ -24,7 +24,7 @@ def register(subparsers) -> None:
     )
     p.add_argument("pred", metavar="OUT.npz", help="solved output (uuomocap solve, or a recording's npz export)")
     p.add_argument("--session", metavar="DIR", help="the session it was solved from (markers, up axis, gt.npz)")
-    p.add_argument("--markers", metavar="FILE", help="marker file (.c3d / .trc) when there is no session")
+    p.add_argument("--markers", metavar="FILE", help="marker file (.c3d, .trc, or a recording's .mcap) when there is no session")
     p.add_argument("--gt", metavar="gt.npz", help="reference body (default: the session's gt.npz when it has one)")
     p.add_argument("--out", metavar="PNG", help="image to write (default: OUT.png beside OUT.npz)")
     p.add_argument("--frames", default="6", help="a count of evenly spaced frames (default 6, at most 24), or indices '0,120,240' (one: '120,')")
