@@ -41,3 +41,24 @@ def test_queue_model_serves_the_measured_calls_one_at_a_time_at_the_capture_rate
     est, ref = queue_latencies(StreamRun(np.zeros(0), rate, {}, {}, np.zeros(0), None, 0.0, 5, 0.0, 0.0, np.zeros(0),
                                          np.zeros(0), {}, calls))
     np.testing.assert_allclose(ref, [42.0, 32.0], atol=1e-9)  # done at 42 ms; arrived at 0 and 10
+
+
+def test_the_long_takes_refined_frames_are_scored_by_minute_against_their_looped_source_frames():
+    """bench speed's long take loops a session: refined frame k is scored against source frame
+    k % P and binned by the minute it falls in; estimates are not scored."""
+    from types import SimpleNamespace
+
+    from uuomocap.commands.bench_speed import add_refined_errors
+
+    rate = 1.0  # a frame per second: frames 0-59 are minute 0, 60-119 minute 1
+    gt = np.zeros((3, 24, 3))
+    gt[1, :, 0] = 0.01  # source frame 1 sits 10 mm along x
+    results = [SimpleNamespace(kind="refined", frame_index=0, joints=np.zeros((24, 3))),   # exact
+               SimpleNamespace(kind="refined", frame_index=61, joints=np.zeros((24, 3))),  # 61 % 3 = 1: 10 mm off
+               SimpleNamespace(kind="estimate", frame_index=62, joints=np.ones((24, 3))),  # not the live output scored
+               SimpleNamespace(kind="refined", frame_index=63, joints=np.full((24, 3), 0.002))]  # source 0: 2*sqrt(3) mm
+    by = {}
+    add_refined_errors(by, results, gt, rate)
+    assert sorted(by) == [0, 1]
+    np.testing.assert_allclose(by[0], [0.0])
+    np.testing.assert_allclose(by[1], [0.01, 0.002 * np.sqrt(3)])
