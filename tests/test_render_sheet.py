@@ -42,7 +42,9 @@ def test_contact_sheet_shows_the_frames_markers_by_part_and_the_reference(solved
     png = tmp_path / "sheet.png"
     assert main(["render", str(out), "--session", str(sd), "--out", str(png), "--frames", "4", "--tile", "160x200", "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
-    assert info["frames"] == [0, 20, 39, 59] and info["markers"] == 20 and info["labelled"] == 19
+    frames = info["frames"]
+    assert len(frames) == 4 and frames == sorted(frames) and frames[0] == 0 and frames[-1] <= 59
+    assert info["markers"] == 20 and info["labelled"] == 19
     assert info["frame_mpjpe_mm"] == [0.0] * 4  # the solve is the reference
     img = cv2.imread(str(png))
     assert img.shape == (22 + 2 * 200, 4 * 160, 3)  # title strip, front + side rows, one column per frame
@@ -105,3 +107,21 @@ def test_the_demo_sheet_lands_beside_the_solve(solved):
     info = session_sheet(out, sd)
     assert info["png"] == str(out.with_suffix(".png")) and out.with_suffix(".png").is_file()
     assert len(info["frames"]) == 6 and info["labelled"] == 19
+
+
+def test_a_count_of_frames_picks_distinct_poses_where_evenly_spaced_frames_repeat_one_phase():
+    """A cyclic motion whose period is the even spacing: linspace picks one phase six times, the
+    sheet's choice spreads over the cycle (its extremes included), in time order, never a NaN frame."""
+    from uuomocap.commands.render import spread_frames
+
+    t = np.arange(61)
+    joints = np.zeros((61, 24, 3))
+    joints[:, 5, 0] = 0.3 * np.sin(2 * np.pi * t / 12)  # a hand swinging 30 cm either way, period 12 frames
+    assert {int(i) % 12 for i in np.linspace(0, 60, 6).round()} == {0}  # evenly spaced: one phase
+    picked = spread_frames(joints, 6)
+    assert picked == sorted(picked) and len(set(picked)) == 6
+    phases = {i % 12 for i in picked}
+    assert len(phases) >= 4 and {3, 9} <= phases, picked  # both extremes of the swing
+    joints[3::12] = np.nan  # unsolved frames (every frame at the forward extreme)
+    picked = spread_frames(joints, 6)
+    assert not any(i % 12 == 3 for i in picked) and len(picked) == 6

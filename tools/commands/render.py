@@ -27,7 +27,7 @@ def register(subparsers) -> None:
     p.add_argument("--markers", metavar="FILE", help="marker file (.c3d, .trc, or a recording's .mcap) when there is no session")
     p.add_argument("--gt", metavar="gt.npz", help="reference body (default: the session's gt.npz when it has one)")
     p.add_argument("--out", metavar="PNG", help="image to write (default: OUT.png beside OUT.npz)")
-    p.add_argument("--frames", default="6", help="a count of evenly spaced frames (default 6, at most 24), or indices '0,120,240' (one: '120,')")
+    p.add_argument("--frames", default="6", help="a count of frames (default 6, at most 24: the poses that differ most, in time order), or indices '0,120,240' (one: '120,')")
     p.add_argument("--tile", default="240x320", help="width x height of one view in pixels (default 240x320)")
     p.add_argument("--up-axis", choices=("+z", "+y"), help="world up axis (default: the session's / marker file's, else +z)")
     p.add_argument("--video", metavar="MP4", help="also write a video of the take from one fixed camera, with the same overlays")
@@ -39,7 +39,28 @@ def register(subparsers) -> None:
 MAX_FRAMES = 24  # columns of one sheet
 
 
-def _frames(spec: str, n: int) -> list[int]:
+def spread_frames(joints: np.ndarray, k: int, time_span_m: float = 0.3) -> list[int]:
+    """k frames that differ most in pose, in time order: farthest-point sampling over each frame's
+    root-relative joints (metres) with its time along one more axis (the take spans ``time_span_m``,
+    so repeats of a pose - a walk's strides - are told apart by when they happen, but a different
+    pose counts for more).  Evenly spaced frames of a cyclic motion can all land on one phase.
+    joints: (F, 24, 3); frames holding NaN are never picked; starts at the first finite frame."""
+    F = joints.shape[0]
+    ok = np.isfinite(joints).all(axis=(1, 2))
+    if not ok.any():
+        return sorted(set(np.linspace(0, F - 1, min(k, F)).round().astype(int).tolist()))
+    feats = np.concatenate([(joints - joints[:, :1]).reshape(F, -1), (np.arange(F) * time_span_m / max(F - 1, 1))[:, None]], axis=1)
+    feats[~ok] = 0.0
+    picked = [int(np.flatnonzero(ok)[0])]
+    dist = np.where(ok, np.linalg.norm(feats - feats[picked[0]], axis=1), -np.inf)
+    while len(picked) < min(k, int(ok.sum())):
+        nxt = int(np.argmax(dist))
+        picked.append(nxt)
+        dist = np.minimum(dist, np.where(ok, np.linalg.norm(feats - feats[nxt], axis=1), -np.inf))
+    return sorted(picked)
+
+
+def _frames(spec: str, n: int, joints: np.ndarray | None = None) -> list[int]:
     try:
         if "," in spec:
             idx = [int(s) for s in spec.split(",") if s.strip()]
@@ -47,7 +68,7 @@ def _frames(spec: str, n: int) -> list[int]:
             k = int(spec)
             if not 1 <= k <= MAX_FRAMES:
                 raise UserError(f"--frames {spec}: a count of 1-{MAX_FRAMES} frames (one frame by index: '{spec},')")
-            idx = sorted(set(np.linspace(0, n - 1, min(k, n)).round().astype(int).tolist()))
+            idx = spread_frames(joints, k) if joints is not None else sorted(set(np.linspace(0, n - 1, min(k, n)).round().astype(int).tolist()))
     except ValueError:
         raise UserError(f"--frames {spec!r}: give a count (6) or frame indices (0,120,240)") from None
     bad = [i for i in idx if not 0 <= i < n]
@@ -218,7 +239,7 @@ def render_sheet(solve: Solve, out: Path, frames_spec: str = "6", tile: tuple[in
     from uuomocap.render import contact_sheet, marker_surface_points
     from uuomocap.solver_core.metrics import posed_vertices
 
-    frames = _frames(frames_spec, solve.n)
+    frames = _frames(frames_spec, solve.n, solve.joints)
     if out.suffix.lower() != ".png":
         raise UserError(f"--out {out}: the contact sheet is a .png")
     sel = np.asarray(frames)
