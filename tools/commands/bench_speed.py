@@ -187,9 +187,11 @@ def long_take(sdir: Path, minutes: float, rate_hz: float, bar) -> dict:
     t0 = time.perf_counter()
     next_prior = 0
 
+    gt_looped = gt_joints[order] if gt_joints is not None else None  # frame k's truth at k % len(order)
+
     def score(results):
-        if gt_joints is not None:
-            add_refined_errors(minute_err, results, gt_joints[order], rate)
+        if gt_looped is not None:
+            add_refined_errors(minute_err, results, gt_looped, rate)
 
     for k in range(total):
         j = order[k % len(order)]

@@ -60,7 +60,7 @@ def spread_frames(joints: np.ndarray, k: int, time_span_m: float = 0.3) -> list[
     return sorted(picked)
 
 
-def _frames(spec: str, n: int, joints: np.ndarray | None = None) -> list[int]:
+def _frames(spec: str, n: int, joints: np.ndarray) -> list[int]:
     try:
         if "," in spec:
             idx = [int(s) for s in spec.split(",") if s.strip()]
@@ -68,7 +68,7 @@ def _frames(spec: str, n: int, joints: np.ndarray | None = None) -> list[int]:
             k = int(spec)
             if not 1 <= k <= MAX_FRAMES:
                 raise UserError(f"--frames {spec}: a count of 1-{MAX_FRAMES} frames (one frame by index: '{spec},')")
-            idx = spread_frames(joints, k) if joints is not None else sorted(set(np.linspace(0, n - 1, min(k, n)).round().astype(int).tolist()))
+            idx = spread_frames(joints, k)
     except ValueError:
         raise UserError(f"--frames {spec!r}: give a count (6) or frame indices (0,120,240)") from None
     bad = [i for i in idx if not 0 <= i < n]
