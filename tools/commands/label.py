@@ -1,0 +1,151 @@
+"""``uuomocap label OUT.npz --out labeled.c3d``: the take's markers written back with names.
+
+The solve gave every unlabelled marker a body part and a surface point; this verb turns those into
+the labelled trajectories a lab passes on (Plug-in Gait names, a studio's own template's, else
+``LThigh1``-style segment names) - every frame and column of the marker file as recorded, only
+the labels new (``solver_core.marker_naming``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from uuomocap.commands import UserError, add_json_flag, emit
+
+LAYOUTS = ("plug-in-gait", "segments")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "label",
+        help="write a solved take's markers with names (C3D/TRC): Plug-in Gait, your template's, or segment names",
+        description=(
+            "Name the markers of a solved take and write them to a C3D or TRC file: every frame and column "
+            "of the marker file as recorded (gaps stay gaps), with labels.  Each marker's solved surface "
+            "point is matched to the named points of a layout on the rest pose of the solved body (each "
+            "name used once, the summed distance smallest, no pair further apart than --max-distance-mm); "
+            "a marker left over is named by the body segment it rides and its order from the segment's "
+            "joint (LThigh1 nearest the hip).  Layouts: segments (default: segment names only, for markers "
+            "put anywhere), plug-in-gait (Vicon's full-body Plug-in Gait names, LFHD ... RTOE, for a PiG "
+            "marker set), or a template .npz of "
+            "your own marker set: `uuomocap sample motion-from-markers one_labelled_take.c3d --out "
+            "template.npz` fits it once (any subject; the names transfer through the body surface)."),
+    )
+    p.add_argument("pred", metavar="OUT.npz", help="solved output of `uuomocap solve` (marker_faces / marker_bary / marker_parts)")
+    p.add_argument("--session", metavar="DIR", help="the session it was solved from (its marker file)")
+    p.add_argument("--markers", metavar="FILE", help="the marker file it was solved from (.c3d / .trc) when there is no session")
+    p.add_argument("--out", required=True, metavar="FILE", help="labelled marker file to write: .c3d or .trc")
+    p.add_argument("--layout", default="segments", metavar="NAME|TEMPLATE.npz",
+                   help="segments (default: segment names only) | plug-in-gait | a template npz with marker_labels (or marker_names), "
+                        "marker_faces and marker_bary on the solve's body model")
+    p.add_argument("--max-distance-mm", type=float, default=None,
+                   help="furthest a marker may sit from a layout point and take its name (default 100)")
+    add_json_flag(p)
+    p.set_defaults(func=_handler)
+
+
+def load_layout(spec: str, model, betas: np.ndarray, body_model_name: str):
+    """-> (faces (L,), bary (L, 3), names (L,)) of a layout, or (None, None, ()) for segment names."""
+    from uuomocap.protocol.session import SessionError, read_npz
+    from uuomocap.solver_core.marker_sim import structured_layout
+
+    if spec == "segments":
+        return None, None, ()
+    if spec == "plug-in-gait":
+        layout = structured_layout(model, betas)
+        return layout.face_ids, layout.bary, layout.names
+    path = Path(spec)
+    if path.suffix.lower() != ".npz":
+        raise UserError(f"--layout {spec}: give {' or '.join(LAYOUTS)}, or a template .npz "
+                        "(`uuomocap sample motion-from-markers labelled.c3d --out template.npz`)")
+    if not path.is_file():
+        raise UserError(f"--layout {spec}: file not found")
+    try:
+        t = read_npz(path)
+    except SessionError as exc:
+        raise UserError(str(exc)) from None
+    key = "marker_labels" if "marker_labels" in t else "marker_names" if "marker_names" in t else None
+    if key is None or "marker_faces" not in t or "marker_bary" not in t:
+        raise UserError(f"--layout {spec}: a template holds marker_labels (or marker_names), marker_faces and marker_bary "
+                        "(write one with `uuomocap sample motion-from-markers`)")
+    template_model = str(t.get("body_model", "open-low"))
+    if template_model != body_model_name:
+        raise UserError(f"--layout {spec}: fitted on body model {template_model!r}, the solve on {body_model_name!r}: "
+                        f"re-fit it with `uuomocap sample motion-from-markers FILE --out T.npz --body-model {body_model_name}`")
+    names, faces, bary = np.asarray(t[key]).astype(str), np.asarray(t["marker_faces"], np.int64), np.asarray(t["marker_bary"], np.float64)
+    if not (names.shape[0] == faces.shape[0] == bary.shape[0]) or bary.shape[1:] != (3,):
+        raise UserError(f"--layout {spec}: marker_faces {faces.shape}, marker_bary {bary.shape} and names {names.shape} disagree")
+    keep = (faces >= 0) & (faces < model.faces.shape[0])
+    if not keep.any():
+        raise UserError(f"--layout {spec}: no name has a surface point")
+    return faces[keep], bary[keep], tuple(names[keep].tolist())
+
+
+def _handler(args) -> int:
+    from uuomocap.protocol.markerio import MarkerFileError, read_markers, write_c3d, write_trc
+    from uuomocap.protocol.session import SessionError, load_session, read_npz
+    from uuomocap.solver_core.body_model import load_body_model
+    from uuomocap.solver_core.marker_naming import MarkerNamingConfig, name_markers
+
+    out = Path(args.out)
+    if out.suffix.lower() not in (".c3d", ".trc"):
+        raise UserError(f"--out {out}: write a .c3d or a .trc")
+    pred_path = Path(args.pred)
+    if not pred_path.is_file():
+        raise UserError(f"{pred_path}: file not found")
+    try:
+        pred = read_npz(pred_path)
+    except SessionError as exc:
+        raise UserError(str(exc)) from None
+    for k in ("betas", "marker_faces", "marker_bary"):
+        if k not in pred:
+            raise UserError(f"{pred_path}: missing {k!r} - label needs a solve's marker labels (`uuomocap solve` writes them)")
+    if bool(args.session) == bool(args.markers):
+        raise UserError("give the marker file the take was solved from: --session DIR or --markers FILE")
+    try:
+        md = load_session(Path(args.session), load_prior=False, load_gt=False).markers if args.session else read_markers(args.markers)
+    except (SessionError, MarkerFileError) as exc:
+        raise UserError(str(exc)) from None
+    faces = np.asarray(pred["marker_faces"], np.int64)
+    if faces.shape[0] != md.n_markers:
+        raise UserError(f"{pred_path}: labels for {faces.shape[0]} markers, the marker file has {md.n_markers} columns - "
+                        "not the file this was solved from")
+    body_model = str(pred.get("body_model", "open-low"))
+    try:
+        model = load_body_model(body_model)
+    except (ValueError, OSError) as exc:
+        raise UserError(f"{pred_path}: cannot load body model {body_model!r} ({exc})") from None
+    betas = np.asarray(pred["betas"], np.float64).reshape(-1)
+    if not np.isfinite(betas).all():
+        raise UserError(f"{pred_path}: betas hold NaN/inf (an unsolved take)")
+    cap_mm = MarkerNamingConfig().max_distance_m * 1000 if args.max_distance_mm is None else args.max_distance_mm
+    if not cap_mm > 0:
+        raise UserError(f"--max-distance-mm {args.max_distance_mm}: give a positive distance")
+    l_faces, l_bary, l_names = load_layout(args.layout, model, betas, body_model)
+    parts = [str(x) for x in pred.get("marker_parts", [""] * faces.shape[0])]
+    named = name_markers(model, betas, faces, pred["marker_bary"], parts, l_faces, l_bary, l_names,
+                         MarkerNamingConfig(max_distance_m=cap_mm / 1000.0))
+    positions = np.where(md.visible[..., None], md.positions, np.nan)
+    try:
+        if out.suffix.lower() == ".c3d":
+            write_c3d(out, positions, md.rate_hz, labels=list(named.names), up_axis=md.up_axis)
+        else:
+            write_trc(out, positions, md.rate_hz, labels=list(named.names), up_axis=md.up_axis)
+    except (OSError, ValueError) as exc:
+        raise UserError(f"--out {out}: cannot write ({exc})") from None
+    rows = [{"column": k, "was": md.raw_labels[k] if md.raw_labels else md.labels[k], "name": n, "part": parts[k],
+             "layout_distance_mm": None if not np.isfinite(d) else round(1000 * float(d), 1)}
+            for k, (n, d) in enumerate(zip(named.names, named.distance_m))]
+    info = {"out": str(out), "frames": md.n_frames, "markers": md.n_markers, "layout": args.layout,
+            "layout_names": len(l_names), "named_from_layout": named.named_count,
+            "max_distance_mm": cap_mm, "markers_named": rows}
+    lines = [f"wrote {out}: {md.n_frames} frames @ {md.rate_hz:g} Hz, {md.n_markers} markers; "
+             f"{named.named_count} named from {args.layout} ({len(l_names)} names), "
+             f"{md.n_markers - named.named_count} by segment"]
+    lines += [f"  {r['was']:>10} -> {r['name']:<12} {r['part'] or '-':<15}"
+              + (f" {r['layout_distance_mm']:5.1f} mm from the layout point" if r["layout_distance_mm"] is not None else "")
+              for r in rows]
+    emit(args, info, "\n".join(lines))
+    return 0
