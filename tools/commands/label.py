@@ -141,9 +141,9 @@ def _handler(args) -> int:
     info = {"out": str(out), "frames": md.n_frames, "markers": md.n_markers, "layout": args.layout,
             "layout_names": len(l_names), "named_from_layout": named.named_count,
             "max_distance_mm": cap_mm, "markers_named": rows}
-    lines = [f"wrote {out}: {md.n_frames} frames @ {md.rate_hz:g} Hz, {md.n_markers} markers; "
-             f"{named.named_count} named from {args.layout} ({len(l_names)} names), "
-             f"{md.n_markers - named.named_count} by segment"]
+    how = (f"{named.named_count} named from {args.layout} ({len(l_names)} names), {md.n_markers - named.named_count} by segment"
+           if l_names else "named by segment")
+    lines = [f"wrote {out}: {md.n_frames} frames @ {md.rate_hz:g} Hz, {md.n_markers} markers; {how}"]
     lines += [f"  {r['was']:>10} -> {r['name']:<12} {r['part'] or '-':<15}"
               + (f" {r['layout_distance_mm']:5.1f} mm from the layout point" if r["layout_distance_mm"] is not None else "")
               for r in rows]
