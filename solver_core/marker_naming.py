@@ -151,3 +151,16 @@ def name_markers(model, betas: np.ndarray, marker_faces: np.ndarray, marker_bary
     for k, n in zip(rest, fallback):
         names[k] = n
     return MarkerNames(tuple(names), tuple(layout), dist)
+
+
+def compare_names(names, reference_names, layout_names) -> dict:
+    """How a naming agrees with a reference's names (a labelled take of the same markers).
+
+    Only markers whose reference name is one of the layout's can be named right; ``wrong`` lists
+    every layout name given to a marker whose reference name differs ('LMT5->LTOE').
+    names, reference_names: (M,); layout_names: (L,).  -> {compared, right, wrong, unnamed}."""
+    layout = set(layout_names)
+    compared = [(r, n) for r, n in zip(reference_names, names) if r in layout]
+    return {"compared": len(compared), "right": sum(r == n for r, n in compared),
+            "wrong": [f"{r}->{n}" for r, n in zip(reference_names, names) if n in layout and r != n],
+            "unnamed": [r for r, n in compared if n not in layout]}

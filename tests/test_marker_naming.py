@@ -70,6 +70,8 @@ def test_label_writes_every_frame_of_the_take_with_plug_in_gait_names(pig_take, 
     assert main(["label", str(out), "--session", str(sd), "--out", str(c3d), "--layout", "plug-in-gait", "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["markers"] == 39 and info["layout_names"] == 39 and info["named_from_layout"] == 38
+    # the session's gt.npz knows the true names: the verb scores itself against them
+    assert info["against_reference"] == {"compared": 39, "right": 38, "wrong": [], "unnamed": [truth[0]]}
     got = read_markers(c3d)
     source = read_markers(sd / "markers.c3d")
     assert got.labels[0] == "Unlabeled1"  # no surface point: no layout name, no part

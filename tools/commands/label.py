@@ -87,7 +87,7 @@ def _handler(args) -> int:
     from uuomocap.protocol.markerio import MarkerFileError, read_markers, write_c3d, write_trc
     from uuomocap.protocol.session import SessionError, load_session, read_npz
     from uuomocap.solver_core.body_model import load_body_model
-    from uuomocap.solver_core.marker_naming import MarkerNamingConfig, name_markers
+    from uuomocap.solver_core.marker_naming import MarkerNamingConfig, compare_names, name_markers
 
     out = Path(args.out)
     if out.suffix.lower() not in (".c3d", ".trc"):
@@ -144,8 +144,28 @@ def _handler(args) -> int:
     how = (f"{named.named_count} named from {args.layout} ({len(l_names)} names), {md.n_markers - named.named_count} by segment"
            if l_names else "named by segment")
     lines = [f"wrote {out}: {md.n_frames} frames @ {md.rate_hz:g} Hz, {md.n_markers} markers; {how}"]
+    reference = _reference_names(args.session, md.n_markers)
+    if reference is not None and l_names:
+        info["against_reference"] = c = compare_names(named.names, reference, l_names)
+        lines.append(f"against the session's gt.npz names: {c['right']} of {c['compared']} right"
+                     + (f"; wrong: {' '.join(c['wrong'])}" if c["wrong"] else "")
+                     + (f"; unnamed: {' '.join(c['unnamed'])}" if c["unnamed"] else ""))
     lines += [f"  {r['was']:>10} -> {r['name']:<12} {r['part'] or '-':<15}"
               + (f" {r['layout_distance_mm']:5.1f} mm from the layout point" if r["layout_distance_mm"] is not None else "")
               for r in rows]
     emit(args, info, "\n".join(lines))
     return 0
+
+
+def _reference_names(session: str | None, m_count: int) -> list[str] | None:
+    """The true names of a generated or `sample from-capture` session's columns (gt.npz marker_names), if any."""
+    from uuomocap.protocol.session import SessionError, read_npz
+
+    gt = Path(session) / "gt.npz" if session else None
+    if gt is None or not gt.is_file():
+        return None
+    try:
+        names = read_npz(gt).get("marker_names")
+    except SessionError:
+        return None
+    return None if names is None or len(names) != m_count else [str(n) for n in names]
