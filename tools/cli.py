@@ -67,6 +67,13 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("uuomocap: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # `uuomocap ... | head`: the reader left; what it did not read is nobody's error.  Point
+        # stdout at devnull so the interpreter's final flush does not raise again.
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     return int(rc or 0)
 
 

@@ -145,7 +145,7 @@ def _handler(args) -> int:
            if l_names else "named by segment")
     lines = [f"wrote {out}: {md.n_frames} frames @ {md.rate_hz:g} Hz, {md.n_markers} markers; {how}"]
     reference = _reference_names(args.session, md.n_markers)
-    if reference is not None and l_names:
+    if reference is not None and l_names and compare_names(named.names, reference, l_names)["compared"]:
         info["against_reference"] = c = compare_names(named.names, reference, l_names)
         lines.append(f"against the session's gt.npz names: {c['right']} of {c['compared']} right"
                      + (f"; wrong: {' '.join(c['wrong'])}" if c["wrong"] else "")
