@@ -411,3 +411,84 @@ def retarget(bvh: Bvh, model, betas: np.ndarray, up_axis: str = "+z", drop_rest_
             "bvh_frames": bvh.num_frames, "bvh_rate_hz": bvh.rate_hz}
     return Motion(Path(bvh.source).stem if bvh.source else "bvh", poses, trans, bvh.rate_hz, up_axis,
                   np.asarray(betas, dtype=np.float64).copy(), info)
+
+
+# ----------------------------------------------------------------------------- writing
+
+# SMPL joint -> BVH joint name in the Mixamo / MotionBuilder convention, which retargeting tools
+# (Blender add-ons, HumanIK's auto-characterise) recognise: hips, spine, neck, head, shoulders
+# = clavicles, arms, forearms, hands = wrists, index-base as the hand's end.
+BVH_WRITE_NAMES: tuple[str, ...] = (
+    "Hips", "LeftUpLeg", "RightUpLeg", "Spine", "LeftLeg", "RightLeg", "Spine1", "LeftFoot", "RightFoot", "Spine2",
+    "LeftToeBase", "RightToeBase", "Neck", "LeftShoulder", "RightShoulder", "Head", "LeftArm", "RightArm",
+    "LeftForeArm", "RightForeArm", "LeftHand", "RightHand", "LeftHandIndex1", "RightHandIndex1",
+)
+
+
+def _euler_zxy_deg(rot: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotations R = Rz(z) . Rx(x) . Ry(y) -> (..., 3) degrees (z, x, y), the channel
+    order ``Zrotation Xrotation Yrotation``.  At x = +-90 deg (gimbal lock) y is set to 0."""
+    r = np.asarray(rot, np.float64)
+    x = np.arcsin(np.clip(r[..., 2, 1], -1.0, 1.0))
+    locked = np.abs(np.cos(x)) < 1e-7
+    y = np.where(locked, 0.0, np.arctan2(-r[..., 2, 0], r[..., 2, 2]))
+    z = np.where(locked, np.arctan2(r[..., 1, 0], r[..., 0, 0]), np.arctan2(-r[..., 0, 1], r[..., 1, 1]))
+    return np.degrees(np.stack([z, x, y], axis=-1))
+
+
+def body_bvh_text(parents, rest_joints: np.ndarray, poses: np.ndarray, trans: np.ndarray, world_to_bvh: np.ndarray,
+                  rate_hz: float, unit_m: float = 0.01, names=BVH_WRITE_NAMES, end_sites: dict | None = None) -> str:
+    """A solved body as BVH text: the body model's skeleton in its own rest pose (SMPL's T-pose,
+    Y up, facing +Z), one frame per pose.
+
+    parents: (J,) parent index (-1 root); rest_joints: (J, 3) metres, rest pose of the solved shape;
+    poses: (F, 3J) axis-angle (root first, in the capture's world); trans: (F, 3) metres;
+    world_to_bvh: (3, 3) rotation from the capture's world into the BVH's Y-up world; unit_m:
+    metres per BVH unit (0.01: centimetres); end_sites: joint -> (3,) metres offset of its End Site.
+    The skeleton's posed joints are exactly the solve's (same forward kinematics)."""
+    from .motions import axis_angle_to_matrices
+
+    parents = [int(p) for p in parents]
+    J = len(parents)
+    F = poses.shape[0]
+    rot = axis_angle_to_matrices(np.asarray(poses, np.float64).reshape(F, J, 3))
+    rot[:, 0] = world_to_bvh @ rot[:, 0]
+    root = (world_to_bvh @ (rest_joints[0] + np.asarray(trans, np.float64)).T).T / unit_m
+    euler = np.unwrap(np.radians(_euler_zxy_deg(rot)), axis=0)  # no 360-degree jumps between frames
+    euler = np.degrees(euler)
+    end_sites = end_sites or {}
+    children = {j: [k for k in range(J) if parents[k] == j] for j in range(J)}
+    lines = ["HIERARCHY"]
+
+    def hierarchy(j: int, depth: int) -> None:
+        pad = "  " * depth
+        off = (rest_joints[j] - rest_joints[parents[j]]) / unit_m if parents[j] >= 0 else np.zeros(3)
+        lines.append(f"{pad}{'ROOT' if parents[j] < 0 else 'JOINT'} {names[j]}")
+        lines.append(f"{pad}{{")
+        lines.append(f"{pad}  OFFSET {off[0]:.6f} {off[1]:.6f} {off[2]:.6f}")
+        lines.append(f"{pad}  CHANNELS " + ("6 Xposition Yposition Zposition " if parents[j] < 0 else "3 ")
+                     + "Zrotation Xrotation Yrotation")
+        for k in children[j]:
+            hierarchy(k, depth + 1)
+        if not children[j]:
+            e = np.asarray(end_sites.get(j, (0.0, 0.05, 0.0)), np.float64) / unit_m
+            lines.extend([f"{pad}  End Site", f"{pad}  {{", f"{pad}    OFFSET {e[0]:.6f} {e[1]:.6f} {e[2]:.6f}", f"{pad}  }}"])
+        lines.append(f"{pad}}}")
+
+    order: list[int] = []
+
+    def walk(j: int) -> None:
+        order.append(j)
+        for k in children[j]:
+            walk(k)
+
+    roots = [j for j in range(J) if parents[j] < 0]
+    if len(roots) != 1:
+        raise ValueError(f"a BVH skeleton has one root, this one has {len(roots)}")
+    hierarchy(roots[0], 0)
+    walk(roots[0])
+    lines += ["MOTION", f"Frames: {F}", f"Frame Time: {1.0 / rate_hz:.8f}"]
+    for f in range(F):
+        vals = [*root[f]] + [v for j in order for v in euler[f, j]]
+        lines.append(" ".join(f"{v:.6f}" for v in vals))
+    return "\n".join(lines) + "\n"
