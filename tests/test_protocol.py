@@ -207,7 +207,10 @@ def test_broker_pub_sub_keeps_every_message_and_survives_garbage(kind, tmp_path)
     try:
         sub.subscribe("markers/raw")
         sub.subscribe("log/")
+        # each subscription travels through the broker on its own: one live path says nothing of the
+        # other (a CI run lost the first log message to a "log/" subscription still in flight)
         _wait_path(pub, sub, "markers/raw")
+        _wait_path(pub, sub, "log/p")
         good = frames_of(EXAMPLES[0], topic="markers/raw")
         for i in range(300):
             pub.send("markers/raw", dataclasses.replace(EXAMPLES[0], frame_index=i))

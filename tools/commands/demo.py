@@ -75,6 +75,7 @@ def _handler(args) -> int:
         where["contact_sheet"] = session_sheet(pred, session)["png"]
     except UserError as exc:  # a picture is not worth failing the run that solved
         print(f"(no contact sheet: {exc})", flush=True)
+    where.update(_hand_over(pred, session, out))
     data = {"session": str(session), "mode": "graph" if use_graph else "offline", **where,
             "seconds": {"generate": round(t_gen, 2), "solve": round(t_solve, 2)}, "metrics": res}
     text = "\n".join([
@@ -85,6 +86,25 @@ def _handler(args) -> int:
     ])
     emit(args, data, text)
     return 0
+
+
+def _hand_over(pred, session, out) -> dict:
+    """What a user takes to other tools: the skeleton as BVH and the markers with names (the demo's
+    markers are random, so segment names)."""
+    from argparse import Namespace
+
+    from uuomocap.commands.export import run_export
+    from uuomocap.commands.label import run_label
+
+    done = {}
+    try:
+        done["bvh"] = run_export(Namespace(pred=str(pred), out=str(out / "stream.bvh"), session=str(session), markers=None,
+                                           up_axis=None, units="cm"))[0]["out"]
+        done["named_markers"] = run_label(Namespace(pred=str(pred), out=str(out / "markers_named.c3d"), session=str(session),
+                                                    markers=None, layout="segments", max_distance_mm=None))[0]["out"]
+    except UserError as exc:  # nor are the hand-over files
+        print(f"(no export: {exc})", flush=True)
+    return done
 
 
 def register(subparsers) -> None:

@@ -68,6 +68,13 @@ def _fill_nearest(valid: np.ndarray) -> np.ndarray:
 
 
 def _handler(args) -> int:
+    info, text = run_export(args)
+    emit(args, info, text)
+    return 0
+
+
+def run_export(args) -> tuple[dict, str]:
+    """The verb without printing: (JSON info, text) - `uuomocap demo` calls it too."""
     from uuomocap.commands.render import load_solve
     from uuomocap.protocol.markerio import write_c3d, write_trc
     from uuomocap.solver_core.bvh import BVH_WRITE_NAMES, body_bvh_text
@@ -115,5 +122,4 @@ def _handler(args) -> int:
                         + (f" ({info['unsolved_frames']} unsolved frames are gaps)" if info["unsolved_frames"] else ""))
     except OSError as exc:
         raise UserError(f"--out {out}: cannot write ({exc.strerror or exc})") from None
-    emit(args, info, text_out)
-    return 0
+    return info, text_out

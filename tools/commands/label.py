@@ -84,6 +84,13 @@ def load_layout(spec: str, model, betas: np.ndarray, body_model_name: str):
 
 
 def _handler(args) -> int:
+    info, text = run_label(args)
+    emit(args, info, text)
+    return 0
+
+
+def run_label(args) -> tuple[dict, str]:
+    """The verb without printing: (JSON info, text) - `uuomocap demo` calls it too."""
     from uuomocap.protocol.markerio import MarkerFileError, read_markers, write_c3d, write_trc
     from uuomocap.protocol.session import SessionError, load_session, read_npz
     from uuomocap.solver_core.body_model import load_body_model
@@ -153,8 +160,7 @@ def _handler(args) -> int:
     lines += [f"  {r['was']:>10} -> {r['name']:<12} {r['part'] or '-':<15}"
               + (f" {r['layout_distance_mm']:5.1f} mm from the layout point" if r["layout_distance_mm"] is not None else "")
               for r in rows]
-    emit(args, info, "\n".join(lines))
-    return 0
+    return info, "\n".join(lines)
 
 
 def _reference_names(session: str | None, m_count: int) -> list[str] | None:
