@@ -31,7 +31,8 @@ def register(subparsers) -> None:
             "put anywhere), plug-in-gait (Vicon's full-body Plug-in Gait names, LFHD ... RTOE, for a PiG "
             "marker set), or a template .npz of "
             "your own marker set: `uuomocap sample motion-from-markers one_labelled_take.c3d --out "
-            "template.npz` fits it once (any subject; the names transfer through the body surface)."),
+            "template.npz` fits it once; the names transfer through the body surface to other takes and "
+            "subjects of the same marker set and placement protocol."),
     )
     p.add_argument("pred", metavar="OUT.npz", help="solved output of `uuomocap solve` (marker_faces / marker_bary / marker_parts)")
     p.add_argument("--session", metavar="DIR", help="the session it was solved from (its marker file)")
@@ -48,7 +49,6 @@ def register(subparsers) -> None:
 
 def load_layout(spec: str, model, betas: np.ndarray, body_model_name: str):
     """-> (faces (L,), bary (L, 3), names (L,)) of a layout, or (None, None, ()) for segment names."""
-    from uuomocap.protocol.session import SessionError, read_npz
     from uuomocap.solver_core.marker_sim import structured_layout
 
     if spec == "segments":
@@ -60,12 +60,7 @@ def load_layout(spec: str, model, betas: np.ndarray, body_model_name: str):
     if path.suffix.lower() != ".npz":
         raise UserError(f"--layout {spec}: give {' or '.join(LAYOUTS)}, or a template .npz "
                         "(`uuomocap sample motion-from-markers labelled.c3d --out template.npz`)")
-    if not path.is_file():
-        raise UserError(f"--layout {spec}: file not found")
-    try:
-        t = read_npz(path)
-    except SessionError as exc:
-        raise UserError(str(exc)) from None
+    t = _read_npz(path, f"--layout {spec}: ")
     key = "marker_labels" if "marker_labels" in t else "marker_names" if "marker_names" in t else None
     if key is None or "marker_faces" not in t or "marker_bary" not in t:
         raise UserError(f"--layout {spec}: a template holds marker_labels (or marker_names), marker_faces and marker_bary "
@@ -92,7 +87,7 @@ def _handler(args) -> int:
 def run_label(args) -> tuple[dict, str]:
     """The verb without printing: (JSON info, text) - `uuomocap demo` calls it too."""
     from uuomocap.protocol.markerio import MarkerFileError, read_markers, write_c3d, write_trc
-    from uuomocap.protocol.session import SessionError, load_session, read_npz
+    from uuomocap.protocol.session import SessionError, load_session
     from uuomocap.solver_core.body_model import load_body_model
     from uuomocap.solver_core.marker_naming import MarkerNamingConfig, compare_names, name_markers
 
@@ -100,12 +95,7 @@ def run_label(args) -> tuple[dict, str]:
     if out.suffix.lower() not in (".c3d", ".trc"):
         raise UserError(f"--out {out}: write a .c3d or a .trc")
     pred_path = Path(args.pred)
-    if not pred_path.is_file():
-        raise UserError(f"{pred_path}: file not found")
-    try:
-        pred = read_npz(pred_path)
-    except SessionError as exc:
-        raise UserError(str(exc)) from None
+    pred = _read_npz(pred_path)
     for k in ("betas", "marker_faces", "marker_bary"):
         if k not in pred:
             raise UserError(f"{pred_path}: missing {k!r} - label needs a solve's marker labels (`uuomocap solve` writes them)")
@@ -161,6 +151,18 @@ def run_label(args) -> tuple[dict, str]:
               + (f" {r['layout_distance_mm']:5.1f} mm from the layout point" if r["layout_distance_mm"] is not None else "")
               for r in rows]
     return info, "\n".join(lines)
+
+
+def _read_npz(path: Path, context: str = "") -> dict:
+    """An npz as a dict, or a one-line error naming the file."""
+    from uuomocap.protocol.session import SessionError, read_npz
+
+    if not path.is_file():
+        raise UserError(f"{context or str(path) + ': '}file not found")
+    try:
+        return read_npz(path)
+    except SessionError as exc:
+        raise UserError(f"{context}{exc}") from None
 
 
 def _reference_names(session: str | None, m_count: int) -> list[str] | None:
