@@ -20,10 +20,11 @@ def register(subparsers) -> None:
             "Write a solved OUT.npz for other tools.  .bvh: the body model's 24-joint skeleton with the "
             "solved shape's bone lengths, in its T-pose rest, Y up (the BVH convention: a Z-up capture is "
             "turned), Mixamo/MotionBuilder joint names (Hips, LeftUpLeg, ...), Z-X-Y Euler channels, one "
-            "frame per solved frame - Blender, MotionBuilder and Maya import it.  .trc / .c3d: the 24 "
-            "joint centres per frame as virtual markers in the capture's world (OpenSim and Visual3D "
-            "read them).  A streamed solve (frame_betas) is written with its last shape's bones, so "
-            "joints sit within a few mm of the solve's own.  Frames the solve left empty (NaN) are "
+            "frame per solved frame (the common form: one 6-channel ROOT, 3 rotation channels per joint, End "
+            "Sites; checked here with our own BVH reader).  .trc / .c3d: the 24 joint centres per frame as "
+            "virtual markers in the capture's world (the marker files OpenSim and Visual3D take).  A streamed "
+            "solve (frame_betas) is written with its last shape's bones: frames solved under an earlier "
+            "lock's shape and never revised move by that shape change.  Frames the solve left empty (NaN) are "
             "gaps in a TRC/C3D and hold the nearest solved frame in a BVH (counted in the output)."),
     )
     p.add_argument("pred", metavar="OUT.npz", help="solved output (uuomocap solve, or a recording's npz export)")
