@@ -39,6 +39,7 @@ __all__ = [
     "read_markers",
     "write_c3d",
     "write_trc",
+    "to_y_up",
     "register_reader",
     "MARKER_READERS",
     "parse_units",
@@ -778,27 +779,43 @@ def write_c3d(path, positions, rate_hz, labels=None, up_axis: str = "+z", residu
     return path
 
 
+# An axis-aligned rotation taking each up axis onto +y (TRC's / OpenSim's up): rows map (x, y, z).
+_TO_Y_UP = {
+    "+y": ((1, 0, 0), (0, 1, 0), (0, 0, 1)),
+    "+z": ((1, 0, 0), (0, 0, 1), (0, -1, 0)),   # -90 deg about x: z -> y, y -> -z
+    "-z": ((1, 0, 0), (0, 0, -1), (0, 1, 0)),   # +90 deg about x
+    "-y": ((1, 0, 0), (0, -1, 0), (0, 0, -1)),  # 180 deg about x
+    "+x": ((0, -1, 0), (1, 0, 0), (0, 0, 1)),   # +90 deg about z: x -> y
+    "-x": ((0, 1, 0), (-1, 0, 0), (0, 0, 1)),   # -90 deg about z
+}
+
+
+def to_y_up(up_axis: str) -> np.ndarray:
+    """(3, 3) rotation taking a world with ``up_axis`` up into a +y-up one (``p_y = R @ p``)."""
+    return np.asarray(_TO_Y_UP[up_axis], dtype=np.float64)
+
+
 def write_trc(path, positions, rate_hz, labels=None, up_axis: str = "+y", units: str = "mm") -> Path:
     """Write markers to a TRC text file (OpenSim / Motion Analysis layout).
 
     positions: (T, M, 3) metres, NaN = missing (written as blank fields).
-    units: 'mm' (default) or 'm'.  TRC has no up-axis field; OpenSim assumes +y.  When up_axis
-    is not '+y' an extra 'UpAxis' header column records it (OpenSim keeps unknown header keys
-    as metadata); our reader honours it.  Data are never rotated.
+    units: 'mm' (default) or 'm'.  TRC has no up-axis field and OpenSim reads every TRC +y up, so
+    a capture with another up axis is turned into +y up (``to_y_up``: a 90 or 180 degree turn, the
+    same turn for every point).  The header holds exactly OpenSim's eight keys: opensim 4.6's
+    TRCFileAdapter rejects a ninth ('Incorrect number of keys'), which is why the 'UpAxis' key this
+    writer added before is gone (our reader still honours it in old files).
     """
     path = Path(path)
     pos, rate, labels, up = _check_write_args(positions, rate_hz, labels, up_axis)
     if units not in ("mm", "m"):
         raise ValueError(f"units must be 'mm' or 'm', got {units!r}")
+    pos = pos @ to_y_up(up).T
     T, M, _ = pos.shape
     scale = 1000.0 if units == "mm" else 1.0
     decimals = 5 if units == "mm" else 8
     rate_s = f"{rate:.10g}"
     keys = ["DataRate", "CameraRate", "NumFrames", "NumMarkers", "Units", "OrigDataRate", "OrigDataStartFrame", "OrigNumFrames"]
     vals = [rate_s, rate_s, str(T), str(M), units, rate_s, "1", str(T)]
-    if up != "+y":
-        keys.append("UpAxis")
-        vals.append(up)
     lines = [
         f"PathFileType\t4\t(X/Y/Z)\t{path.name}",
         "\t".join(keys),

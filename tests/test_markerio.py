@@ -248,10 +248,26 @@ def test_write_trc_round_trip(tmp_path):
     path = write_trc(tmp_path / "m.trc", pos, 100.0, labels=[f"P{i}" for i in range(6)], up_axis="+z")
     md = read_markers(path)
     assert md.labels == [f"P{i}" for i in range(6)] and md.labelled
-    assert md.up_axis == "+z" and "UpAxis" in md.up_axis_source
+    # OpenSim reads every TRC +y up (and rejects extra header keys): a +z capture is turned, x kept
+    header = path.read_text().splitlines()[1].split("\t")
+    assert len(header) == 8 and "UpAxis" not in header
+    assert md.up_axis == "+y"
     assert np.array_equal(np.isnan(md.positions), np.isnan(pos))
-    np.testing.assert_allclose(md.positions, pos, atol=1e-8)
+    turned = np.stack([pos[..., 0], pos[..., 2], -pos[..., 1]], axis=-1)
+    np.testing.assert_allclose(md.positions, turned, atol=1e-8)
     assert md.warnings == []
+
+
+@pytest.mark.parametrize("up", ["+x", "-x", "+y", "-y", "+z", "-z"])
+def test_to_y_up_turns_each_up_axis_onto_plus_y(up):
+    from uuomocap.protocol.markerio import to_y_up
+
+    r = to_y_up(up)
+    axis = np.zeros(3)
+    axis["xyz".index(up[1])] = 1.0 if up[0] == "+" else -1.0
+    np.testing.assert_allclose(r @ axis, [0.0, 1.0, 0.0])
+    np.testing.assert_allclose(r @ r.T, np.eye(3))
+    assert np.isclose(np.linalg.det(r), 1.0)
 
 
 # ----------------------------------------------------------------------------------- bad files

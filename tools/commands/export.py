@@ -23,7 +23,7 @@ def register(subparsers) -> None:
             "frame per solved frame (the common form: one 6-channel ROOT, 3 rotation channels per joint, End "
             "Sites; Blender 4.2's own BVH importer, scale 0.01 and default axes, puts its bone heads on the "
             "solve's joints to 0.001 mm).  .trc / .c3d: the 24 joint centres per frame as "
-            "virtual markers in the capture's world (the marker files OpenSim and Visual3D take).  A streamed "
+            "virtual markers in the capture's world (a TRC is turned +y up, as OpenSim reads every TRC).  A streamed "
             "solve (frame_betas) is written with its last shape's bones: frames solved under an earlier "
             "lock's shape and never revised move by that shape change.  Frames the solve left empty (NaN) are "
             "gaps in a TRC/C3D and hold the nearest solved frame in a BVH (counted in the output)."),
@@ -120,7 +120,10 @@ def run_export(args) -> tuple[dict, str]:
             write = write_c3d if kind == ".c3d" else write_trc
             write(out, joints, rate, labels=names, up_axis=up)
             info.update(joints=24, joint_names=names)
-            text_out = (f"wrote {out}: 24 joint centres, {solve.n} frames @ {rate:g} Hz, {up} up"
+            written_up = up if kind == ".c3d" else "+y"  # TRC: OpenSim's +y (markerio.write_trc turns it)
+            info["written_up_axis"] = written_up
+            text_out = (f"wrote {out}: 24 joint centres, {solve.n} frames @ {rate:g} Hz, {written_up} up"
+                        + (f" (turned from the capture's {up})" if written_up != up else "")
                         + (f" ({info['unsolved_frames']} unsolved frames are gaps)" if info["unsolved_frames"] else ""))
     except OSError as exc:
         raise UserError(f"--out {out}: cannot write ({exc.strerror or exc})") from None

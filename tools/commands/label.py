@@ -23,8 +23,8 @@ def register(subparsers) -> None:
         help="write a solved take's markers with names (C3D/TRC): Plug-in Gait, your template's, or segment names",
         description=(
             "Name the markers of a solved take and write them to a C3D or TRC file: every frame and column "
-            "of the marker file as recorded (gaps stay gaps), with labels.  Each marker's solved surface "
-            "point is matched to the named points of a layout on the rest pose of the solved body (each "
+            "of the marker file as recorded (gaps stay gaps; a TRC is turned +y up, as OpenSim reads it), "
+            "with labels.  Each marker's solved surface point is matched to the named points of a layout on the rest pose of the solved body (each "
             "name used once, the summed distance smallest, no pair further apart than --max-distance-mm); "
             "a marker left over is named by the body segment it rides and its order from the segment's "
             "joint (LThigh1 nearest the hip).  Layouts: segments (default: segment names only, for markers "
@@ -141,6 +141,9 @@ def run_label(args) -> tuple[dict, str]:
     how = (f"{named.named_count} named from {args.layout} ({len(l_names)} names), {md.n_markers - named.named_count} by segment"
            if l_names else "named by segment")
     lines = [f"wrote {out}: {md.n_frames} frames @ {md.rate_hz:g} Hz, {md.n_markers} markers; {how}"]
+    if out.suffix.lower() == ".trc" and md.up_axis != "+y":  # markerio.write_trc: OpenSim reads every TRC +y up
+        info["written_up_axis"] = "+y"
+        lines.append(f"(the TRC is +y up, turned from the capture's {md.up_axis}, as OpenSim reads it)")
     reference = _reference_names(args.session, md.n_markers)
     if reference is not None and l_names and compare_names(named.names, reference, l_names)["compared"]:
         info["against_reference"] = c = compare_names(named.names, reference, l_names)
