@@ -60,13 +60,11 @@ def _up_axis(args) -> str:
 
 
 def _fill_nearest(valid: np.ndarray) -> np.ndarray:
-    """(F,) bool -> (F,) index of the nearest valid frame (itself when valid)."""
-    idx = np.flatnonzero(valid)
-    pos = np.searchsorted(idx, np.arange(valid.shape[0])).clip(1, len(idx) - 1) if len(idx) > 1 else np.zeros(valid.shape[0], int)
-    if len(idx) == 1:
-        return np.full(valid.shape[0], idx[0])
-    left, right = idx[pos - 1], idx[pos]
-    return np.where(np.abs(np.arange(valid.shape[0]) - left) <= np.abs(right - np.arange(valid.shape[0])), left, right)
+    """(F,) bool with at least one True -> (F,) index of the nearest valid frame (itself when valid)."""
+    frames, idx = np.arange(valid.shape[0]), np.flatnonzero(valid)
+    right = idx[np.minimum(np.searchsorted(idx, frames), len(idx) - 1)]
+    left = idx[np.maximum(np.searchsorted(idx, frames, side="right") - 1, 0)]
+    return np.where(np.abs(frames - left) <= np.abs(right - frames), left, right)
 
 
 def _handler(args) -> int:

@@ -24,8 +24,9 @@ def register(subparsers) -> None:
         description=(
             "Name the markers of a solved take and write them to a C3D or TRC file: every frame and column "
             "of the marker file as recorded (gaps stay gaps; a TRC is turned +y up, as OpenSim reads it), "
-            "with labels.  Each marker's solved surface point is matched to the named points of a layout on the rest pose of the solved body (each "
-            "name used once, the summed distance smallest, no pair further apart than --max-distance-mm); "
+            "with labels.  Each marker's solved surface point is matched to the named points of a layout on "
+            "the rest pose of the solved body (each name used once, the summed distance smallest, no pair "
+            "further apart than --max-distance-mm); "
             "a marker left over is named by the body segment it rides and its order from the segment's "
             "joint (LThigh1 nearest the hip).  Layouts: segments (default: segment names only, for markers "
             "put anywhere), plug-in-gait (Vicon's full-body Plug-in Gait names, LFHD ... RTOE, for a PiG "
