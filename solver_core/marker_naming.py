@@ -60,15 +60,6 @@ class MarkerNames:
         return sum(1 for n in self.layout_names if n)
 
 
-def rest_surface_points(model, betas: np.ndarray, face_ids: np.ndarray, bary: np.ndarray) -> np.ndarray:
-    """Surface points (P, 3) metres on the rest pose of shape ``betas`` (B,); face_ids (P,), bary (P, 3)."""
-    from .marker_sim import rest_vertices
-
-    verts = rest_vertices(model, np.asarray(betas, np.float64)).double().numpy()
-    corners = model.faces.numpy()[np.asarray(face_ids, dtype=np.int64)]
-    return (verts[corners] * np.asarray(bary, np.float64)[..., None]).sum(1)
-
-
 def assign_layout_names(marker_points: np.ndarray, layout_points: np.ndarray, layout_names, max_distance_m: float
                         ) -> tuple[list[str], np.ndarray]:
     """Each layout name to at most one marker, minimising the summed distance, no pair over the cap.
@@ -131,6 +122,8 @@ def name_markers(model, betas: np.ndarray, marker_faces: np.ndarray, marker_bary
     betas: (B,) the solve's shape; marker_faces (M,) (-1 = no surface point), marker_bary (M, 3),
     marker_parts (M,) joint names ('' = none); the layout: faces (L,), bary (L, 3), names (L,) on
     the same body model (None = segment names only)."""
+    from .metrics import surface_points_rest as rest_surface_points
+
     faces = np.asarray(marker_faces, dtype=np.int64)
     has_point = faces >= 0
     points = np.full((faces.shape[0], 3), np.nan)
