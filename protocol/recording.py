@@ -262,7 +262,7 @@ def read_markers_mcap(path: str | Path, topic: str = "markers/raw", progress: bo
         for j, tid in enumerate(ids.tolist()):
             if tid not in col_of:
                 col_of[tid] = len(col_of)
-            if f.labels and tid not in labels_of:
+            if f.labels and f.labels[j]:  # the last name a track had: a live namer's follow the solver's lock
                 labels_of[tid] = f.labels[j]
     T, M = len(frames), len(col_of)
     positions = np.full((T, M, 3), np.nan)

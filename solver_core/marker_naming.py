@@ -157,3 +157,76 @@ def compare_names(names, reference_names, layout_names) -> dict:
     return {"compared": len(compared), "right": sum(r == n for r, n in compared),
             "wrong": [f"{r}->{n}" for r, n in zip(reference_names, names) if n in layout and r != n],
             "unnamed": [r for r, n in compared if n not in layout]}
+
+
+class LayoutError(ValueError):
+    """A layout spec that cannot be used (unknown name, unreadable or mismatched template)."""
+
+
+LAYOUTS = ("segments", "plug-in-gait")
+
+
+def load_layout(spec: str, model, betas: np.ndarray, body_model_name: str):
+    """A layout's named surface points -> (faces (L,), bary (L, 3), names (L,)), or (None, None, ())
+    for segment names only.
+
+    spec: 'segments' | 'plug-in-gait' (Vicon's full-body landmarks, ``marker_sim.structured_layout``
+    on ``betas``) | a template .npz with marker_labels (or marker_names), marker_faces and
+    marker_bary fitted on ``body_model_name`` (``uuomocap sample motion-from-markers``).  Never
+    unpickles; raises :class:`LayoutError` naming what is wrong."""
+    from pathlib import Path
+
+    from .marker_sim import structured_layout
+
+    if spec == "segments":
+        return None, None, ()
+    if spec == "plug-in-gait":
+        layout = structured_layout(model, betas)
+        return layout.face_ids, layout.bary, layout.names
+    path = Path(spec)
+    if path.suffix.lower() != ".npz":
+        raise LayoutError(f"{spec}: give {' or '.join(LAYOUTS)}, or a template .npz "
+                          "(`uuomocap sample motion-from-markers labelled.c3d --out template.npz`)")
+    if not path.is_file():
+        raise LayoutError(f"{spec}: file not found")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            t = {k: z[k] for k in z.files}
+    except ValueError as exc:
+        raise LayoutError(f"{spec}: " + ("contains pickled objects, which are never loaded" if "pickle" in str(exc).lower()
+                                         else f"not a valid npz ({exc})")) from None
+    except Exception as exc:  # zipfile.BadZipFile, OSError: a truncated or foreign file
+        raise LayoutError(f"{spec}: not a valid npz ({exc})") from None
+    key = "marker_labels" if "marker_labels" in t else "marker_names" if "marker_names" in t else None
+    if key is None or "marker_faces" not in t or "marker_bary" not in t:
+        raise LayoutError(f"{spec}: a template holds marker_labels (or marker_names), marker_faces and marker_bary "
+                          "(write one with `uuomocap sample motion-from-markers`)")
+    template_model = str(t.get("body_model", "open-low"))
+    if template_model != body_model_name:
+        raise LayoutError(f"{spec}: fitted on body model {template_model!r}, the solve on {body_model_name!r}: re-fit it with "
+                          f"`uuomocap sample motion-from-markers FILE --out T.npz --body-model {body_model_name}`")
+    names, faces, bary = np.asarray(t[key]).astype(str), np.asarray(t["marker_faces"], np.int64), np.asarray(t["marker_bary"], np.float64)
+    if not (names.shape[0] == faces.shape[0] == bary.shape[0]) or bary.shape[1:] != (3,):
+        raise LayoutError(f"{spec}: marker_faces {faces.shape}, marker_bary {bary.shape} and names {names.shape} disagree")
+    keep = (faces >= 0) & (faces < model.faces.shape[0])
+    if not keep.any():
+        raise LayoutError(f"{spec}: no name has a surface point")
+    return faces[keep], bary[keep], tuple(names[keep].tolist())
+
+
+def name_markers_with_points(model, betas: np.ndarray, marker_faces: np.ndarray, marker_bary: np.ndarray, marker_parts,
+                             layout_faces: np.ndarray | None = None, layout_bary: np.ndarray | None = None, layout_names=(),
+                             config: MarkerNamingConfig = MarkerNamingConfig()) -> list[str]:
+    """:func:`name_markers` over the markers that have a surface point, '' for the others - a live
+    stream's slots: empty tracker slots, tracks the solver has not assigned yet, everything before
+    its bootstrap locks.  Shapes as :func:`name_markers`; -> names (M,)."""
+    faces = np.asarray(marker_faces, dtype=np.int64).reshape(-1)
+    has_point = np.flatnonzero(faces >= 0)
+    out = [""] * faces.shape[0]
+    if has_point.size:
+        named = name_markers(model, betas, faces[has_point], np.asarray(marker_bary)[has_point],
+                             [str(marker_parts[k]) if k < len(marker_parts) else "" for k in has_point],
+                             layout_faces, layout_bary, layout_names, config)
+        for k, n in zip(has_point, named.names):
+            out[k] = n
+    return out

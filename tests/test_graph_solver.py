@@ -13,24 +13,25 @@ import numpy as np
 import pytest
 
 from uuomocap.nodes.base import discover_plugins
+from uuomocap.protocol.messages import MarkerFrame
 from uuomocap.protocol.recording import iter_recording
 
 DEADLINE = 240.0
 
 
-def start_graph(tmp_path: Path, launch: str, session: Path, out: Path, tag: str) -> tuple[subprocess.Popen, Path]:
-    """The launcher on ``launch`` (bootstrap 1.5 s) in its own session -> (process, log dir)."""
+def start_graph(tmp_path: Path, launch: str, session: Path, out: Path, tag: str, *args: str) -> tuple[subprocess.Popen, Path]:
+    """The launcher on ``launch`` (bootstrap 1.5 s, more ``key:=value`` args) in its own session -> (process, log dir)."""
     logs = tmp_path / f"logs-{tag}"
     logs.mkdir()
     with open(logs / "launcher.log", "wb") as log:
         proc = subprocess.Popen([sys.executable, "-m", "uuomocap.launcher", launch, f"session:={session}", f"out:={out}",
-                                 "bootstrap_s:=1.5", "--log-dir", str(logs)], stdout=log, stderr=log, stdin=subprocess.DEVNULL,
+                                 "bootstrap_s:=1.5", *args, "--log-dir", str(logs)], stdout=log, stderr=log, stdin=subprocess.DEVNULL,
                                 start_new_session=True)
     return proc, logs
 
 
-def run_graph(tmp_path: Path, session: Path, out: Path, tag: str) -> int:
-    proc, logs = start_graph(tmp_path, "offline_solve", session, out, tag)
+def run_graph(tmp_path: Path, session: Path, out: Path, tag: str, *args: str) -> int:
+    proc, logs = start_graph(tmp_path, "offline_solve", session, out, tag, *args)
     try:
         code = proc.wait(DEADLINE)
         if code != 0:  # which node ended how (the launcher says) and every node's last lines
@@ -105,7 +106,7 @@ def test_a_live_stop_keeps_every_estimated_frame_refined(tmp_path):
     session = tmp_path / "s"
     make_session(session, SampleConfig(motion="walk", rate_hz=30.0, duration_s=60.0, n_markers=40, seed=0, video=False))
     out = tmp_path / "live.mcap"
-    proc, logs = start_graph(tmp_path, "replay_session", session, out, "live")
+    proc, logs = start_graph(tmp_path, "replay_session", session, out, "live", "label:=true")
     try:
         deadline = time.monotonic() + DEADLINE
         solver_log = logs / "solver.log"
@@ -131,3 +132,39 @@ def test_a_live_stop_keeps_every_estimated_frame_refined(tmp_path):
     exported = np.load(out.with_suffix(".npz"))
     assert len(exported["frame_kind"]) == len(kinds["estimate"]) and np.isin(exported["frame_kind"], ("refined", "revised")).all()
     assert (exported["frame_kind"] == "revised").sum() == len(kinds["revised"])
+    # the namer (label:=true) drained too: every recorded marker frame is on markers/named, and the
+    # frames after the lock carry a name per marker, each once
+    raw = [rec.decode().message for rec in iter_recording(out, topics=["markers/raw"])]
+    named = [rec.decode().message for rec in iter_recording(out, topics=["markers/named"])]
+    raw, named = ([m for m in ms if isinstance(m, MarkerFrame)] for ms in (raw, named))
+    assert [m.stamp_ns for m in named] == [m.stamp_ns for m in raw]
+    last = named[-1].labels
+    assert len(last) == 40 and all(last) and len(set(last)) == 40, last
+    assert np.array_equal(named[-1].positions, raw[-1].positions)
+
+
+@pytest.mark.slow
+def test_the_namer_names_a_plug_in_gait_take_in_the_graph(tmp_path):
+    """markers/named in a lockstep replay (launch label:=true layout:=plug-in-gait): frames before
+    the solver's bootstrap locks carry no names, every later one the Plug-in Gait names, which are
+    the session's true names; the recording reads back as a labelled marker file."""
+    if not {"solver", "namer"} <= set(discover_plugins()):
+        pytest.skip("solver/namer plugins are not installed (pip install -e .)")
+    from uuomocap.protocol.recording import read_markers_mcap
+    from uuomocap.protocol.session import read_npz
+    from uuomocap.synth import SampleConfig, make_session
+
+    session = tmp_path / "pig"
+    make_session(session, SampleConfig(motion="walk", rate_hz=30.0, duration_s=3.0, n_markers=39, seed=3, video=False,
+                                       layout="structured"))
+    out = tmp_path / "run.mcap"
+    assert run_graph(tmp_path, session, out, "pig", "label:=true", "layout:=plug-in-gait") == 0
+    truth = [str(n) for n in read_npz(session / "gt.npz")["marker_names"]]
+    named = [m for m in (rec.decode().message for rec in iter_recording(out, topics=["markers/named"])) if isinstance(m, MarkerFrame)]
+    assert len(named) == 90
+    with_names = [i for i, m in enumerate(named) if m.labels]
+    assert with_names and with_names == list(range(with_names[0], 90)) and with_names[0] >= 45  # after the 1.5 s bootstrap
+    right = sum(a == b for a, b in zip(named[-1].labels, truth))
+    assert right >= 35, list(zip(named[-1].labels, truth))
+    md = read_markers_mcap(out, topic="markers/named")
+    assert md.labelled and md.labels == named[-1].labels and md.n_frames == 90

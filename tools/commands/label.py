@@ -14,9 +14,6 @@ import numpy as np
 
 from uuomocap.commands import UserError, add_json_flag, emit
 
-LAYOUTS = ("plug-in-gait", "segments")
-
-
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "label",
@@ -49,34 +46,14 @@ def register(subparsers) -> None:
 
 
 def load_layout(spec: str, model, betas: np.ndarray, body_model_name: str):
-    """-> (faces (L,), bary (L, 3), names (L,)) of a layout, or (None, None, ()) for segment names."""
-    from uuomocap.solver_core.marker_sim import structured_layout
+    """``marker_naming.load_layout`` with its errors as one-line user errors naming ``--layout``."""
+    from uuomocap.solver_core.marker_naming import LayoutError
+    from uuomocap.solver_core.marker_naming import load_layout as load
 
-    if spec == "segments":
-        return None, None, ()
-    if spec == "plug-in-gait":
-        layout = structured_layout(model, betas)
-        return layout.face_ids, layout.bary, layout.names
-    path = Path(spec)
-    if path.suffix.lower() != ".npz":
-        raise UserError(f"--layout {spec}: give {' or '.join(LAYOUTS)}, or a template .npz "
-                        "(`uuomocap sample motion-from-markers labelled.c3d --out template.npz`)")
-    t = _read_npz(path, f"--layout {spec}: ")
-    key = "marker_labels" if "marker_labels" in t else "marker_names" if "marker_names" in t else None
-    if key is None or "marker_faces" not in t or "marker_bary" not in t:
-        raise UserError(f"--layout {spec}: a template holds marker_labels (or marker_names), marker_faces and marker_bary "
-                        "(write one with `uuomocap sample motion-from-markers`)")
-    template_model = str(t.get("body_model", "open-low"))
-    if template_model != body_model_name:
-        raise UserError(f"--layout {spec}: fitted on body model {template_model!r}, the solve on {body_model_name!r}: "
-                        f"re-fit it with `uuomocap sample motion-from-markers FILE --out T.npz --body-model {body_model_name}`")
-    names, faces, bary = np.asarray(t[key]).astype(str), np.asarray(t["marker_faces"], np.int64), np.asarray(t["marker_bary"], np.float64)
-    if not (names.shape[0] == faces.shape[0] == bary.shape[0]) or bary.shape[1:] != (3,):
-        raise UserError(f"--layout {spec}: marker_faces {faces.shape}, marker_bary {bary.shape} and names {names.shape} disagree")
-    keep = (faces >= 0) & (faces < model.faces.shape[0])
-    if not keep.any():
-        raise UserError(f"--layout {spec}: no name has a surface point")
-    return faces[keep], bary[keep], tuple(names[keep].tolist())
+    try:
+        return load(spec, model, betas, body_model_name)
+    except LayoutError as exc:
+        raise UserError(f"--layout {exc}") from None
 
 
 def _handler(args) -> int:

@@ -1,0 +1,103 @@
+"""namer: the markers of the stream with names (``markers/named``), under the solver's lock.
+
+Inputs: ``markers/raw`` (MarkerFrame: the frames the solver solves - remap it to
+``markers/tracked`` where the solver reads the tracker) and ``body/solved`` (SolvedFrame: each
+marker's surface point under the current lock, the solved shape).  Output ``markers/named``: every
+marker frame as it came, with ``labels`` - Vicon Plug-in Gait names, a lab's own template's, or
+``LThigh1``-style segment names (``solver_core.marker_naming``, the same naming as ``uuomocap
+label``) - under the lock current when the frame arrives; '' for a slot without a surface point
+(before the bootstrap locks, an empty tracker slot, a new track not yet assigned).  Names follow
+lock upgrades and re-assignments as they land; ``uuomocap label`` names a whole recorded take under
+its final lock after the take.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from uuomocap.protocol.messages import MarkerFrame, SolvedFrame
+
+from .base import Node, Port
+
+
+@dataclass(frozen=True)
+class NamerConfig:
+    layout: str = "segments"  # segments | plug-in-gait | template .npz (`uuomocap sample motion-from-markers`)
+    max_distance_mm: float = 100.0  # furthest a marker may sit from a layout point and take its name
+    body_model: str = "open-low"  # for solved frames that do not name theirs
+
+    def __post_init__(self):
+        if not self.max_distance_mm > 0:
+            raise ValueError("max_distance_mm must be > 0")
+        if self.layout not in ("segments", "plug-in-gait") and not self.layout.lower().endswith(".npz"):
+            raise ValueError(f"layout {self.layout!r}: segments, plug-in-gait or a template .npz")
+
+
+class Namer(Node):
+    Config = NamerConfig
+    SUBSCRIBES = {
+        "markers": Port("markers/raw", types=("MarkerFrame",)),
+        "solved": Port("body/solved", types=("SolvedFrame",), optional=True),
+    }
+    PUBLISHES = {"named": "markers/named"}
+    DRAIN_ON_STOP_S = 0.5  # name what is queued when the graph stops: a recording keeps every frame
+
+    def setup(self) -> None:
+        from uuomocap.solver_core.marker_naming import MarkerNamingConfig
+
+        self.naming = MarkerNamingConfig(max_distance_m=self.config.max_distance_mm / 1000.0)
+        self.models: dict = {}
+        self.names: list[str] = []
+        self.lock_key: tuple | None = None
+        model = self._model(self.config.body_model)
+        self._layout(model, np.zeros(model.num_betas), self.config.body_model)  # a bad template fails at start-up
+        self.log.info("naming %s with %s", self.inputs["markers"].topic, self.config.layout)
+
+    def _model(self, name: str):
+        if name not in self.models:
+            from uuomocap.solver_core.body_model import load_body_model
+
+            self.models[name] = load_body_model(name)
+        return self.models[name]
+
+    def _layout(self, model, betas: np.ndarray, body_model: str):
+        from uuomocap.solver_core.marker_naming import load_layout
+
+        return load_layout(self.config.layout, model, betas, body_model)
+
+    def on_solved(self, msg: SolvedFrame, env) -> None:
+        if msg.marker_faces is None or msg.kind == "revised":  # revised frames are old frames solved again
+            return
+        # the names change only with the lock (faces, points, parts); a frame's shape alone moves them by nothing
+        key = (msg.body_model, msg.marker_faces.tobytes(), msg.marker_bary.tobytes(), tuple(msg.marker_parts))
+        if key == self.lock_key:
+            return
+        from uuomocap.solver_core.marker_naming import name_markers_with_points
+
+        body_model = msg.body_model or self.config.body_model
+        model = self._model(body_model)
+        betas = np.asarray(msg.betas, np.float64)
+        faces, bary, names = self._layout(model, betas, body_model)
+        new = name_markers_with_points(model, betas, msg.marker_faces, msg.marker_bary, msg.marker_parts, faces, bary,
+                                       names, self.naming)
+        if new != self.names:
+            named = sum(1 for n in new if n)
+            from_layout = sum(1 for n in new if n in set(names))
+            self.log.info("frame %d: %d markers named (%d from %s)", msg.frame_index, named, from_layout, self.config.layout)
+            self.count("renamed")
+        self.names, self.lock_key = new, key
+
+    def on_markers(self, msg: MarkerFrame, env) -> None:
+        names = self.names
+        if names and len(names) != msg.positions.shape[0]:  # another stream's slots: never guess
+            self.count("unnamed_size_mismatch")
+            names = []
+        self.publish("named", dataclasses.replace(msg, labels=list(names)), msg.stamp_ns)
+        self.count("named_frames" if names else "unnamed_frames")
+
+    def on_eos(self, port: str, env) -> None:
+        if port == "markers":
+            self.end_stream("named")
