@@ -5,24 +5,32 @@ landmarks, in batches of ``batch_frames`` -> latency batch_frames / rate) or
 'onnx-hmr:MODEL.onnx' (a user's HMR-class network, one message per frame).
 Stamps: capture stamp = video stamp + clock offset (``clock_offset_s``, else the
 session.yaml next to the video, else 0).  Files play at ``speed`` x real time (0: as
-fast as possible) or in ``lockstep`` on the credits of ``ack_from``; cameras run live.
+fast as possible) or in ``lockstep`` on the credits of ``ack_from``; cameras and stream
+URLs (a phone's rtsp:// or http:// stream) run live.  Live beside a mocap system, ``sync_to``
+names its marker topic: each frame is then stamped on the capture system's clock
+(``protocol.clock.ClockBridge``: this host's arrival time of the frame, mapped by the least-delayed
+marker frames of the last seconds; ``clock_offset_s`` adds a fixed correction, e.g. minus the
+camera's own latency), and ``video_stamp_ns`` is the frame's arrival on this host's monotonic clock.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import time
 from pathlib import Path
 
 import numpy as np
 
+from uuomocap.protocol.clock import ClockBridge
 from uuomocap.protocol.messages import BodyPrior
+from uuomocap.protocol.video import is_live_source
 
-from .base import Node, Pacer
+from .base import Node, Pacer, Port
 
 
 @dataclass(frozen=True)
 class VideoPriorConfig:
-    video: str  # video file, or a camera index such as "0"
+    video: str | int  # video file, a camera index such as 0, or a stream URL (rtsp://, http://)
     estimator: str = "blazepose"  # or "onnx-hmr:MODEL.onnx"
     body_model: str = "open-low"
     clock_offset_s: float | None = None
@@ -34,9 +42,12 @@ class VideoPriorConfig:
     ack_timeout_s: float = 30.0
     batch_frames: int = 15
     max_frames: int = 0  # 0 = all
+    sync_to: str = ""  # marker topic whose capture clock stamps the priors ('' = the video's clock + clock_offset_s)
+    sync_window_s: float = 10.0  # marker frames this recent set the clock mapping (drift, restarts)
 
     def __post_init__(self):
-        if not self.video.isdigit() and not Path(self.video).is_file():
+        object.__setattr__(self, "video", str(self.video))  # video:=0 from a launch file arrives as a number
+        if not is_live_source(self.video) and not Path(self.video).is_file():
             raise ValueError(f"parameter 'video': no such video file {self.video!r}")
         if not (self.estimator == "blazepose" or self.estimator.startswith("onnx-hmr:")):
             raise ValueError(f"parameter 'estimator': {self.estimator!r} is not 'blazepose' or 'onnx-hmr:MODEL'")
@@ -50,6 +61,10 @@ class VideoPrior(Node):
     Config = VideoPriorConfig
     PUBLISHES = {"prior": "body/prior"}
 
+    @classmethod
+    def ports(cls, config: VideoPriorConfig):
+        return ({"sync": Port(config.sync_to, types=("MarkerFrame",), optional=True)} if config.sync_to else {}), dict(cls.PUBLISHES)
+
     def setup(self) -> None:
         from uuomocap.model_fetch import ensure_pose_models
         from uuomocap.protocol.video import session_video_settings, video_source
@@ -60,7 +75,8 @@ class VideoPrior(Node):
         offset = c.clock_offset_s
         session_yaml = Path(c.video).parent / "session.yaml"
         if offset is None:
-            offset = session_video_settings(session_yaml)["clock_offset_s"] if session_yaml.is_file() else 0.0
+            # a session's file only: a camera index or URL has no session.yaml beside it
+            offset = session_video_settings(session_yaml)["clock_offset_s"] if not self.video.live and session_yaml.is_file() else 0.0
         self.offset_ns = int(round(offset * 1e9))
         models = ensure_pose_models(log=self.log.info)
         tracker = BlazePoseEstimator(models.detector, models.landmark)
@@ -79,13 +95,18 @@ class VideoPrior(Node):
             self.fitter = StreamingLandmarkFitter(load_body_model(c.body_model), batch_frames=c.batch_frames)
             self.body_model = c.body_model
         self.pacer = Pacer(c.speed) if c.speed > 0 and not (self.video.live or c.lockstep) else None
+        self.bridge = ClockBridge(c.sync_window_s) if c.sync_to else None
         self.frames: dict[int, tuple[int, object]] = {}  # index -> (video stamp, estimator result)
+        self.frames_capture: dict[int, int] = {}  # index -> capture-clock stamp (sync_to)
         self.last = (np.zeros(3), np.zeros((23, 3)), np.zeros(10))
         self.count_frames, self.last_seq, self.done = 0, -1, False
         if c.ack_from:
             self.track_acks(self.ack_sources(c))
-        self.log.info("video prior: %s at %.3f Hz, estimator %s, clock offset %.3f s", self.video.name,
-                      self.video.rate_hz, c.estimator, offset)
+        self.log.info("video prior: %s at %.3f Hz, estimator %s, clock offset %.3f s%s", self.video.name,
+                      self.video.rate_hz, c.estimator, offset, f", stamped on the clock of {c.sync_to}" if c.sync_to else "")
+
+    def on_sync(self, msg, env) -> None:
+        self.bridge.observe(msg.stamp_ns, time.monotonic_ns())
 
     def step(self) -> bool:
         c = self.config
@@ -101,10 +122,17 @@ class VideoPrior(Node):
             self.wait_ready()  # the clock starts once the subscribers are ready (no start-up burst)
             if not self.sleep_until(self.pacer.due_ns(frame.stamp_ns)):
                 return False
+        stamp = frame.stamp_ns
+        if self.bridge is not None:  # the frame's time is its arrival here, mapped onto the markers' clock
+            if not self.bridge.ready:
+                self.count("before_marker_clock")  # no marker frame yet: no clock to put it on
+                return not self.stopping
+            stamp = time.monotonic_ns()
+            self.frames_capture[frame.index] = self.bridge.to_capture(stamp)
         result = self.estimator.process(frame.rgb())
         self.count("frames")
         self.count("person" if result is not None else "no_person")
-        self.frames[frame.index] = (frame.stamp_ns, result)
+        self.frames[frame.index] = (stamp, result)
         if self.fitter is None:
             self._emit([(frame.index, None if result is None else
                          (result.global_orient, result.body_pose, result.betas, 0.0))])
@@ -119,6 +147,7 @@ class VideoPrior(Node):
         c = self.config
         for index, fit in finished:
             stamp, result = self.frames.pop(index)
+            capture = self.frames_capture.pop(index) if self.bridge is not None else stamp
             if fit is not None:
                 orient, pose, betas, _residual = fit
                 if self.fitter is None:  # HMR output: any rotation layout -> axis-angle
@@ -128,7 +157,7 @@ class VideoPrior(Node):
             score = 0.0 if result is None else float(getattr(result, "pose_score", getattr(result, "score", 1.0)))
             world = getattr(result, "world", None)
             msg = BodyPrior(
-                stamp_ns=stamp + self.offset_ns, video_stamp_ns=stamp, frame_index=index,
+                stamp_ns=capture + self.offset_ns, video_stamp_ns=stamp, frame_index=index,
                 global_orient=self.last[0].astype(np.float32), body_pose=self.last[1].astype(np.float32),
                 betas=self.last[2].astype(np.float32),
                 keypoints3d=None if world is None else np.asarray(world, np.float32),

@@ -85,10 +85,20 @@ def session_video_settings(session_yaml: str | Path) -> dict:
     return out
 
 
+def is_stream_url(source) -> bool:
+    """A network stream OpenCV opens by URL (``rtsp://phone:8554/live``, ``http://10.0.0.7:8080/video``)."""
+    return isinstance(source, str) and "://" in source and not source.lower().startswith("file://")
+
+
+def is_live_source(source) -> bool:
+    """A camera index (``0``, ``"1"``) or a stream URL: frames come when they come, stamped on arrival."""
+    return isinstance(source, int) or (isinstance(source, str) and (source.isdigit() or is_stream_url(source)))
+
+
 class VideoSource:
     """Frames of a video file or a live camera.
 
-    source: a file path, or an int (or digit string) camera index.  rate_hz overrides
+    source: a file path, an int (or digit string) camera index, or a stream URL (rtsp://, http://).  rate_hz overrides
     the container's rate (e.g. the session's ``video.rate_hz``).  timestamps: "index"
     (default for files), "container" (presentation times) or "wallclock" (default for
     cameras: monotonic time since the first frame).
@@ -98,8 +108,11 @@ class VideoSource:
         import cv2
 
         self._cv2 = cv2
-        self.live = isinstance(source, int) or (isinstance(source, str) and source.isdigit())
-        if self.live:
+        self.live = is_live_source(source)
+        if self.live and is_stream_url(source):  # a phone / IP camera: rtsp://, http(s)://, udp:// ... (OpenCV's FFmpeg)
+            self.name = str(source)
+            self.capture = cv2.VideoCapture(str(source))
+        elif self.live:
             self.name = f"camera {int(source)}"
             self.capture = cv2.VideoCapture(int(source))
         else:

@@ -408,6 +408,80 @@ def test_live_graph_natnet_source_tracker_recorder(tmp_path):
     assert np.diff(tracked.stamps_ns) == pytest.approx(1e9 / rate, abs=2)
 
 
+def test_live_video_prior_is_stamped_on_the_mocap_clock(tmp_path):
+    """launch live_natnet video:=FILE: the video_prior node (BlazePose on a real video, played as a
+    live camera) stamps each prior on Motive's clock, which starts at 1000 s and shares no epoch
+    with this host's: the time the server sent a frame, mapped through the server's own send log,
+    is where the prior lands (within a frame of the 120 Hz stream)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from uuomocap.model_fetch import ModelFetchError, ensure_pose_models
+    from uuomocap.nodes.base import discover_plugins
+    from uuomocap.protocol.recording import iter_recording
+
+    video = Path(__file__).resolve().parents[2] / "shared" / "data" / "video" / "person_running_320x240.mp4"
+    if not video.is_file():
+        pytest.skip(f"test video absent: {video}")
+    if {"natnet_source", "tracker", "recorder", "video_prior"} - set(discover_plugins()):
+        pytest.skip("node plugins not installed (pip install -e .)")
+    try:
+        ensure_pose_models(log=lambda msg: None)
+    except (ModelFetchError, OSError) as exc:
+        pytest.skip(f"pose models cannot be fetched here: {exc}")
+    rate, n_frames, motive_t0 = 120.0, 1200, 1000.0
+    out = tmp_path / "live.mcap"
+    sent: list[tuple[int, float]] = []  # (this host's monotonic ns when sent, Motive timestamp s)
+    errors: list = []
+    done = threading.Event()
+
+    def motive_like(server):
+        try:
+            rng = np.random.default_rng(5)
+            deadline = time.monotonic() + 90
+            while not server.clients and not done.is_set() and time.monotonic() < deadline:
+                server.serve_commands(0.05)
+            start, i = time.monotonic(), 0
+            while not done.is_set() and time.monotonic() < deadline:
+                server.serve_commands(0.0)
+                f = _markers_with_ghosts(i, rng, rate)
+                f = nn.FrameOfData(frame_number=f.frame_number, labeled_markers=f.labeled_markers, timestamp=motive_t0 + i / rate)
+                sent.append((time.monotonic_ns(), f.timestamp))
+                server.send_frame(f)
+                i += 1
+                time.sleep(max(0.0, start + i / rate - time.monotonic()))
+        except Exception as exc:
+            errors.append(exc)
+
+    with nn.NatNetServer(nn.ServerInfo(natnet_version=(4, 1, 0, 0)), command_port=0) as server:
+        streamer = threading.Thread(target=motive_like, args=(server,), daemon=True)
+        streamer.start()
+        try:
+            cmd = [sys.executable, "-m", "uuomocap.cli", "launch", "--log-dir", str(tmp_path), "--timeout", "100",
+                   "live_natnet", f"command_port:={server.address[1]}", f"max_frames:={n_frames}", f"out:={out}",
+                   f"video:={video}"]
+            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=130)
+            logs = "".join(f"--- {p.name}\n{p.read_text()}" for p in sorted(tmp_path.glob("*.log")))
+            assert proc.returncode == 0, proc.stderr + logs
+        finally:
+            done.set()
+            streamer.join(timeout=5)
+    assert not errors
+    priors = [m for m in (r.decode().message for r in iter_recording(out, topics=["body/prior"])) if type(m).__name__ == "BodyPrior"]
+    assert len(priors) >= 30, logs  # the video runs at ~30 Hz beside 10 s of markers; frames before the clock settled are dropped
+    send_ns = np.array([a for a, _ in sent], np.float64)
+    motive_s = np.array([b for _, b in sent])
+    arrival = np.array([p.video_stamp_ns for p in priors], np.float64)  # each frame's read time on this host
+    inside = (arrival > send_ns[0]) & (arrival < send_ns[-1])
+    expected_ns = np.interp(arrival[inside], send_ns, motive_s) * 1e9
+    got_ns = np.array([p.stamp_ns for p in priors], np.float64)[inside]
+    err_ms = np.abs(got_ns - expected_ns) / 1e6
+    print(f"{len(priors)} priors; on Motive's clock off by median {np.median(err_ms):.2f} ms, max {err_ms.max():.2f} ms")
+    assert inside.sum() >= 30 and np.median(err_ms) < 5.0 and err_ms.max() < 1000.0 / rate + 5.0, err_ms
+    assert all(p.valid for p in priors[-10:])  # BlazePose found the runner
+
+
 def test_cli_serve_and_probe(tmp_path):
     """`uuomocap natnet serve FILE` imitates Motive; `uuomocap natnet probe` reports what it sends."""
     import json

@@ -23,7 +23,7 @@ Launch file (``launch/*.yaml``)::
         if: $(arg lockstep)              # / unless: ...
 
 Substitutions: ``$(arg NAME)``, ``$(env NAME [DEFAULT])``, ``$(dirname)`` (this file's
-folder), ``$(exists PATH)`` (true/false); innermost first, so they nest. A value
+folder), ``$(exists PATH)`` and ``$(nonempty TEXT)`` (true/false); innermost first, so they nest. A value
 that is exactly one substitution keeps its type (numbers, booleans, lists).
 
 Validation happens before anything is spawned and reports every problem: unknown
@@ -153,7 +153,9 @@ class _Subst:
             return str(self.file.parent)
         if name == "exists":
             return Path(rest).exists()
-        raise LaunchError(f"{self.where}: unknown substitution $({name} ...) (known: arg, env, dirname, exists)")
+        if name == "nonempty":  # an optional text argument was given (a camera, a stream URL)
+            return bool(rest)
+        raise LaunchError(f"{self.where}: unknown substitution $({name} ...) (known: arg, env, dirname, exists, nonempty)")
 
     def value(self, v: Any) -> Any:
         if isinstance(v, dict):
