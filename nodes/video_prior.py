@@ -94,7 +94,7 @@ class VideoPrior(Node):
             self.estimator = tracker
             self.fitter = StreamingLandmarkFitter(load_body_model(c.body_model), batch_frames=c.batch_frames)
             self.body_model = c.body_model
-        self.pacer = Pacer(c.speed) if c.speed > 0 and not (self.video.live or c.lockstep) else None
+        self.pacer = Pacer(c.speed) if c.speed > 0 and not (self.video.live or c.lockstep or c.sync_to) else None
         self.bridge = ClockBridge(c.sync_window_s) if c.sync_to else None
         self.frames: dict[int, tuple[int, object]] = {}  # index -> (video stamp, estimator result)
         self.frames_capture: dict[int, int] = {}  # index -> capture-clock stamp (sync_to)
@@ -110,6 +110,8 @@ class VideoPrior(Node):
 
     def step(self) -> bool:
         c = self.config
+        if self.bridge is not None and not self.video.live and not self.bridge.ready:
+            return self.sleep_until(time.monotonic_ns() + 20_000_000)  # a file waits for the marker clock; a camera cannot
         frame = None if (c.max_frames and self.count_frames >= c.max_frames) else self.video.read()
         if frame is None:
             if self.fitter is not None:
@@ -127,8 +129,14 @@ class VideoPrior(Node):
             if not self.bridge.ready:
                 self.count("before_marker_clock")  # no marker frame yet: no clock to put it on
                 return not self.stopping
-            stamp = time.monotonic_ns()
-            self.frames_capture[frame.index] = self.bridge.to_capture(stamp)
+            if self.video.live:
+                stamp = time.monotonic_ns()
+                self.frames_capture[frame.index] = self.bridge.to_capture(stamp)
+            else:  # a file plays as a camera started with the marker stream (rehearsals, tests): frame k at its k/rate-th second
+                self.frames_capture[frame.index] = self.bridge.first_capture_ns + frame.stamp_ns
+                stamp = self.frames_capture[frame.index] - self.bridge.offset_ns
+                if not self.sleep_until(stamp):  # (a frame whose moment passed while the clock settled goes at once)
+                    return False
         result = self.estimator.process(frame.rgb())
         self.count("frames")
         self.count("person" if result is not None else "no_person")

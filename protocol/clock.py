@@ -8,9 +8,11 @@ transport latency.  The largest ``c - h`` over a recent window is therefore the 
 *smallest* latency seen (the frames that came straight through), which is what maps a camera
 frame's arrival time into the marker clock.  The window (not the whole take) follows clock drift
 and a capture system restarted mid-take; a capture stamp going back clears it at once.  The
-mapping is offered only once the frames seen span ``settle_s`` of capture time: the first frames
-of a stream often wait in a queue while a node starts up (measured here: the very first one mapped
-a camera frame 1.2 s off, the next ones 12 and 7 ms, then under 1 ms).
+mapping is offered only once the frames seen span ``settle_s`` of capture time *and* of arrival
+time: the first frames of a stream often wait in a queue while a node starts up and then come in a
+burst (measured here: with no settling the first camera frame was mapped 1.2 s off, the next ones
+12 and 7 ms, then under 1 ms; settling on capture time alone, a burst of a second of frames left the
+first one 291 ms off).
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ class ClockBridge:
             raise ValueError("window_s > 0 and 0 <= settle_s < window_s are required")
         self.window_ns, self.settle_ns = int(window_s * NS), int(settle_s * NS)
         self._first_capture: int | None = None
+        self._first_local = self._last_local = 0
         self._max: deque[tuple[int, int]] = deque()  # (local arrival, capture - local), offsets decreasing
         self._last_capture: int | None = None
         self.observations = 0
@@ -40,7 +43,7 @@ class ClockBridge:
 
     @property
     def ready(self) -> bool:
-        return bool(self._max) and self._last_capture - self._first_capture >= self.settle_ns
+        return bool(self._max) and min(self._last_capture - self._first_capture, self._last_local - self._first_local) >= self.settle_ns
 
     def observe(self, capture_stamp_ns: int, local_arrival_ns: int) -> None:
         capture, local = int(capture_stamp_ns), int(local_arrival_ns)
@@ -49,7 +52,8 @@ class ClockBridge:
             self._first_capture = None
             self.resets += 1
         if self._first_capture is None:
-            self._first_capture = capture
+            self._first_capture, self._first_local = capture, local
+        self._last_local = local
         self._last_capture = capture
         offset = capture - local
         while self._max and self._max[-1][1] <= offset:  # a later, larger offset outlives the smaller ones
@@ -58,6 +62,11 @@ class ClockBridge:
         while self._max[0][0] < local - self.window_ns:
             self._max.popleft()
         self.observations += 1
+
+    @property
+    def first_capture_ns(self) -> int | None:
+        """The first capture stamp seen (since the capture clock last went back)."""
+        return self._first_capture
 
     @property
     def offset_ns(self) -> int:

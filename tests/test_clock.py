@@ -56,3 +56,15 @@ def test_no_mapping_before_a_frame_and_bad_settings():
     for kwargs in ({"window_s": 0}, {"window_s": 2.0, "settle_s": 2.0}, {"settle_s": -1.0}):
         with pytest.raises(ValueError):
             ClockBridge(**kwargs)
+
+
+def test_a_start_up_burst_does_not_settle_the_mapping():
+    """A second of frames that waited in a queue and arrive within 50 ms spans a second of capture
+    time but not of arrival time: no mapping from it (it would sit ~1 s off)."""
+    bridge = ClockBridge(window_s=5.0, settle_s=1.0)
+    for i in range(120):  # captured over 1 s, all arriving between 1.00 and 1.05 s local
+        bridge.observe(int(500 * NS + i * NS / 120), int(1.0 * NS + i * 0.05 * NS / 120))
+    assert not bridge.ready
+    rng = np.random.default_rng(2)
+    feed(bridge, 120.0, 1.2, 501.0, int(1.05 * NS), lambda r: 1.0 + r.exponential(3.0), rng)  # then the live stream
+    assert bridge.ready and abs(bridge.offset_ns - (500 * NS - int(0.05 * NS) - 1_000_000)) < 300_000

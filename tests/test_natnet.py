@@ -480,6 +480,11 @@ def test_live_video_prior_is_stamped_on_the_mocap_clock(tmp_path):
     print(f"{len(priors)} priors; on Motive's clock off by median {np.median(err_ms):.2f} ms, max {err_ms.max():.2f} ms")
     assert inside.sum() >= 30 and np.median(err_ms) < 5.0 and err_ms.max() < 1000.0 / rate + 5.0, err_ms
     assert all(p.valid for p in priors[-10:])  # BlazePose found the runner
+    # a file beside a live stream plays as a camera started with it: frame k at the first marker frame + k / 30 s
+    raw = [m for m in (r.decode().message for r in iter_recording(out, topics=["markers/raw"])) if type(m).__name__ == "MarkerFrame"]
+    lag_ms = np.array([(p.stamp_ns - raw[0].stamp_ns) / 1e6 - p.frame_index * 1000.0 / 30.0 for p in priors])
+    print(f"frame k on the marker clock: first marker frame + k/30 s + median {np.median(lag_ms):.2f} ms")
+    assert np.abs(np.median(lag_ms)) < 5.0 and np.abs(lag_ms).max() < 40.0, lag_ms
 
 
 def test_cli_serve_and_probe(tmp_path):

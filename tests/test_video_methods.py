@@ -60,3 +60,24 @@ def test_video_methods_need_a_video(tmp_path):
     for name in ("blazepose-prior", "uuo+blazepose"):
         with pytest.raises(ValueError, match="no video"):
             METHODS[name](d, tmp_path / f"{name}.npz", "open-low")
+
+
+def test_a_prior_with_fewer_betas_than_the_body_model_streams(tmp_path):
+    """BlazePose's fitted prior carries 10 betas, the open body model 16: the windowed solver then
+    solves 10 and the replay pads the rest with zeros (the same body).  Before session 38,
+    `uuomocap solve SESSION --method uuo-window` on such a prior.npz failed with 'could not
+    broadcast input array from shape (10,) into shape (16,)'."""
+    from uuomocap.solver_core.body_model import load_body_model
+    from uuomocap.synth import SampleConfig, make_session
+    from uuomocap.window_methods import stream_solve
+
+    session = tmp_path / "s"
+    make_session(session, SampleConfig(motion="walk", rate_hz=30.0, duration_s=1.0, n_markers=30, seed=1, video=False))
+    prior = dict(np.load(session / "prior.npz"))
+    prior["betas"] = prior["betas"][:, :10]
+    np.savez(session / "prior.npz", **prior)
+    run = stream_solve(session, max_frames=12)  # ends before the bootstrap window: bootstrapped at the take's end
+    betas = run.recording["betas"]
+    assert betas.shape == (12, load_body_model("open-low").num_betas) == (12, 16)
+    assert np.isfinite(betas).all() and (betas[:, 10:] == 0).all() and np.abs(betas[:, :10]).sum() > 0
+    assert np.isfinite(run.recording["joints"]).all()

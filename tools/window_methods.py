@@ -118,8 +118,10 @@ def stream_solve(session_dir: Path, body_model: str | None = None, config=None, 
             d = {"estimate": est, "refined": ref, "revised": rev}[r.kind]
             i = r.frame_index
             d["poses"][i], d["trans"][i], d["joints"][i] = r.poses, r.trans, r.joints
-            if r.kind != "estimate":
-                d["betas"][i] = r.betas
+            if r.kind != "estimate":  # a prior with fewer betas (BlazePose's fit: 10) solves that many; the rest are 0
+                nb = min(len(r.betas), model.num_betas)
+                d["betas"][i] = 0.0
+                d["betas"][i, :nb] = r.betas[:nb]
             if r.kind != "revised" and not np.isnan(arrival[i]):
                 (lat_e if r.kind == "estimate" else lat_r)[i] = 1000.0 * (now - arrival[i])
 
