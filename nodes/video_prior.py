@@ -10,13 +10,14 @@ URLs (a phone's rtsp:// or http:// stream) run live.  Live beside a mocap system
 names its marker topic: each frame is then stamped on the capture system's clock
 (``protocol.clock.ClockBridge``: this host's arrival time of the frame, mapped by the least-delayed
 marker frames of the last seconds; ``clock_offset_s`` adds a fixed correction, e.g. minus the
-camera's own latency), and ``video_stamp_ns`` is the frame's arrival on this host's monotonic clock.
+camera's own latency), and ``video_stamp_ns`` is the frame's arrival on this host's monotonic clock;
+a file there plays as a camera started with the marker stream (``ClockBridge.frame_times``).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -129,15 +130,17 @@ class VideoPrior(Node):
             if not self.bridge.ready:
                 self.count("before_marker_clock")  # no marker frame yet: no clock to put it on
                 return not self.stopping
-            if self.video.live:
-                stamp = time.monotonic_ns()
-                self.frames_capture[frame.index] = self.bridge.to_capture(stamp)
-            else:  # a file plays as a camera started with the marker stream (rehearsals, tests): frame k at its k/rate-th second
-                self.frames_capture[frame.index] = self.bridge.first_capture_ns + frame.stamp_ns
-                stamp = self.frames_capture[frame.index] - self.bridge.offset_ns
-                if not self.sleep_until(stamp):  # (a frame whose moment passed while the clock settled goes at once)
+            now = time.monotonic_ns()
+            stamp, capture = self.bridge.frame_times(frame.stamp_ns, self.video.live, frame.arrival_ns or now)
+            if not self.video.live:  # a file frame waits for its moment, and is dropped once the next one's has come:
+                if stamp < now - int(1e9 / self.video.rate_hz):  # like a camera's, the priors keep up, not a backlog
+                    self.count("dropped_behind")
+                    return not self.stopping
+                if not self.sleep_until(stamp):
                     return False
+            self.frames_capture[frame.index] = capture
         result = self.estimator.process(frame.rgb())
+        self.counters["camera_dropped"] = self.video.dropped  # frames a live source sent while the estimator was busy
         self.count("frames")
         self.count("person" if result is not None else "no_person")
         self.frames[frame.index] = (stamp, result)

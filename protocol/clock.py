@@ -77,3 +77,13 @@ class ClockBridge:
 
     def to_capture(self, local_ns: int) -> int:
         return int(local_ns) + self.offset_ns
+
+    def frame_times(self, video_stamp_ns: int, live: bool, now_ns: int) -> tuple[int, int]:
+        """(local monotonic ns, capture-clock ns) of a video frame.  A live camera's frame is where
+        it arrived (``now_ns``); a file beside a live stream plays as a camera started with the
+        marker stream (rehearsals, tests): its frame at ``video_stamp_ns`` (from 0) belongs to the
+        first marker frame's capture time plus that much, and is due here then."""
+        if live:
+            return int(now_ns), self.to_capture(now_ns)
+        capture = self._first_capture + int(video_stamp_ns)
+        return capture - self.offset_ns, capture

@@ -34,6 +34,7 @@ class VideoFrame:
     index: int
     stamp_ns: int  # video clock
     image_bgr: np.ndarray  # (H, W, 3) uint8, OpenCV's channel order
+    arrival_ns: int = 0  # this host's monotonic clock when the frame was grabbed (live sources; 0 for files)
 
     def rgb(self) -> np.ndarray:
         return self.image_bgr[:, :, ::-1].copy()
@@ -101,10 +102,14 @@ class VideoSource:
     source: a file path, an int (or digit string) camera index, or a stream URL (rtsp://, http://).  rate_hz overrides
     the container's rate (e.g. the session's ``video.rate_hz``).  timestamps: "index"
     (default for files), "container" (presentation times) or "wallclock" (default for
-    cameras: monotonic time since the first frame).
+    cameras: monotonic time since the first frame).  latest_only (default for live sources): a
+    thread grabs frames as they come and ``read`` returns the newest one, so a reader slower than
+    the camera gets current frames instead of an ever older backlog from the driver's or FFmpeg's
+    buffer (``dropped`` counts the frames it never saw).
     """
 
-    def __init__(self, source: str | Path | int, rate_hz: float | None = None, timestamps: str | None = None):
+    def __init__(self, source: str | Path | int, rate_hz: float | None = None, timestamps: str | None = None,
+                 latest_only: bool | None = None):
         import cv2
 
         self._cv2 = cv2
@@ -141,28 +146,72 @@ class VideoSource:
         self.frame_count = count if count > 0 and not self.live else None
         self._index = 0
         self._t0: int | None = None
+        self.dropped = 0
+        self._grabber = None
+        if self.live if latest_only is None else latest_only:
+            import threading
+
+            self._latest: tuple | None = None  # (grab index, arrival ns, image) not yet read
+            self._grab_done = False
+            self._cond = threading.Condition()
+            self._grabber = threading.Thread(target=self._grab_loop, name=f"grab {self.name}", daemon=True)
+            self._grabber.start()
 
     @property
     def rate_hz(self) -> float:
         return float(self.rate)
 
+    def _grab_loop(self) -> None:
+        index = 0
+        while True:
+            try:
+                ok, image = self.capture.read()
+            except Exception:  # cv2.error from a dying device or stream: the end of the source
+                ok, image = False, None
+            now = time.monotonic_ns()
+            pos_ms = float(self.capture.get(self._cv2.CAP_PROP_POS_MSEC)) if ok and self.timestamps == "container" else 0.0
+            with self._cond:
+                if not ok or image is None or self._grab_done:
+                    self._grab_done = True
+                    self._cond.notify_all()
+                    return
+                if self._latest is not None:
+                    self.dropped += 1
+                self._latest = (index, now, image, pos_ms)
+                self._cond.notify_all()
+            index += 1
+
+    def _next(self) -> tuple | None:
+        """(index, arrival ns, image, container ms) of the next frame, or None at the end."""
+        if self._grabber is None:
+            ok, image = self.capture.read()
+            if not ok or image is None:
+                return None
+            self._index += 1
+            pos_ms = float(self.capture.get(self._cv2.CAP_PROP_POS_MSEC)) if self.timestamps == "container" else 0.0
+            return self._index - 1, time.monotonic_ns() if self.live else 0, image, pos_ms
+        with self._cond:
+            while self._latest is None and not self._grab_done:
+                self._cond.wait(0.5)
+            latest, self._latest = self._latest, None
+        return latest
+
     def read(self) -> VideoFrame | None:
-        ok, image = self.capture.read()
-        if not ok or image is None:
+        got = self._next()
+        if got is None:
             return None
-        index = self._index
-        self._index += 1
+        index, arrival, image, pos_ms = got
         if self.timestamps == "index":
             stamp = int(index_stamp_ns(index, self.rate))
         elif self.timestamps == "container":
-            stamp = int(round(float(self.capture.get(self._cv2.CAP_PROP_POS_MSEC)) * 1e6))
+            stamp = int(round(pos_ms * 1e6))
         else:
-            now = time.monotonic_ns()
+            now = arrival or time.monotonic_ns()
             self._t0 = now if self._t0 is None else self._t0
             stamp = now - self._t0
         if image.ndim == 2:
             image = np.repeat(image[:, :, None], 3, axis=2)
-        return VideoFrame(index, stamp, image)
+        return VideoFrame(index, stamp, image, arrival)
 
     def __iter__(self) -> Iterator[VideoFrame]:
         while True:
@@ -172,6 +221,10 @@ class VideoSource:
             yield frame
 
     def close(self) -> None:
+        if self._grabber is not None:  # let the grab thread leave its read before the capture goes away
+            with self._cond:
+                self._grab_done = True
+            self._grabber.join(timeout=2.0)
         self.capture.release()
 
     def __enter__(self) -> "VideoSource":
@@ -181,7 +234,7 @@ class VideoSource:
         self.close()
 
 
-def video_source(source: str | Path | int, rate_hz: float | None = None, timestamps: str | None = None
-                 ) -> VideoSource:
-    """Open a video file or camera index (see ``VideoSource``)."""
-    return VideoSource(source, rate_hz, timestamps)
+def video_source(source: str | Path | int, rate_hz: float | None = None, timestamps: str | None = None,
+                 latest_only: bool | None = None) -> VideoSource:
+    """Open a video file, camera index or stream URL (see ``VideoSource``)."""
+    return VideoSource(source, rate_hz, timestamps, latest_only)

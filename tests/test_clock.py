@@ -68,3 +68,16 @@ def test_a_start_up_burst_does_not_settle_the_mapping():
     rng = np.random.default_rng(2)
     feed(bridge, 120.0, 1.2, 501.0, int(1.05 * NS), lambda r: 1.0 + r.exponential(3.0), rng)  # then the live stream
     assert bridge.ready and abs(bridge.offset_ns - (500 * NS - int(0.05 * NS) - 1_000_000)) < 300_000
+
+
+def test_frame_times_of_a_camera_and_of_a_file_played_beside_the_stream():
+    bridge = ClockBridge(window_s=5.0, settle_s=0.5)
+    rng = np.random.default_rng(3)
+    feed(bridge, 100.0, 1.0, 20.0, 3 * NS, lambda r: 1.0, rng)  # capture 20 s <-> local 3 s + 1 ms
+    offset = bridge.offset_ns
+    assert offset == 17 * NS - 1_000_000
+    # a camera frame is where it arrived
+    assert bridge.frame_times(123, True, 5 * NS) == (5 * NS, 5 * NS + offset)
+    # a file's frame at 0.5 s of video belongs to the first marker frame + 0.5 s, due here that much later
+    local, capture = bridge.frame_times(int(0.5 * NS), False, 5 * NS)
+    assert capture == int(20.5 * NS) and local == capture - offset

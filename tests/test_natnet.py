@@ -409,8 +409,8 @@ def test_live_graph_natnet_source_tracker_recorder(tmp_path):
 
 
 def test_live_video_prior_is_stamped_on_the_mocap_clock(tmp_path):
-    """launch live_natnet video:=FILE: the video_prior node (BlazePose on a real video, played as a
-    live camera) stamps each prior on Motive's clock, which starts at 1000 s and shares no epoch
+    """launch live_natnet video:=FILE: the video_prior node (BlazePose on a rendered walker, played
+    as a live camera) stamps each prior on Motive's clock, which starts at 1000 s and shares no epoch
     with this host's: the time the server sent a frame, mapped through the server's own send log,
     is where the prior lands (within a frame of the 120 Hz stream)."""
     import subprocess
@@ -421,15 +421,16 @@ def test_live_video_prior_is_stamped_on_the_mocap_clock(tmp_path):
     from uuomocap.nodes.base import discover_plugins
     from uuomocap.protocol.recording import iter_recording
 
-    video = Path(__file__).resolve().parents[2] / "shared" / "data" / "video" / "person_running_320x240.mp4"
-    if not video.is_file():
-        pytest.skip(f"test video absent: {video}")
     if {"natnet_source", "tracker", "recorder", "video_prior"} - set(discover_plugins()):
         pytest.skip("node plugins not installed (pip install -e .)")
     try:
         ensure_pose_models(log=lambda msg: None)
     except (ModelFetchError, OSError) as exc:
         pytest.skip(f"pose models cannot be fetched here: {exc}")
+    from uuomocap.synth import SampleConfig, make_session
+
+    make_session(tmp_path / "s", SampleConfig(motion="walk", rate_hz=30.0, duration_s=10.0, n_markers=20, seed=0))
+    video = tmp_path / "s" / "video.mp4"  # a rendered walker, 30 Hz
     rate, n_frames, motive_t0 = 120.0, 1200, 1000.0
     out = tmp_path / "live.mcap"
     sent: list[tuple[int, float]] = []  # (this host's monotonic ns when sent, Motive timestamp s)
@@ -469,7 +470,9 @@ def test_live_video_prior_is_stamped_on_the_mocap_clock(tmp_path):
             streamer.join(timeout=5)
     assert not errors
     priors = [m for m in (r.decode().message for r in iter_recording(out, topics=["body/prior"])) if type(m).__name__ == "BodyPrior"]
-    assert len(priors) >= 30, logs  # the video runs at ~30 Hz beside 10 s of markers; frames before the clock settled are dropped
+    # 10 s of video beside 10 s of markers: frames before the clock settled (1 s) and any the estimator
+    # fell behind on are dropped, as a camera's would be
+    assert len(priors) >= 100, logs
     send_ns = np.array([a for a, _ in sent], np.float64)
     motive_s = np.array([b for _, b in sent])
     arrival = np.array([p.video_stamp_ns for p in priors], np.float64)  # each frame's read time on this host
@@ -478,8 +481,8 @@ def test_live_video_prior_is_stamped_on_the_mocap_clock(tmp_path):
     got_ns = np.array([p.stamp_ns for p in priors], np.float64)[inside]
     err_ms = np.abs(got_ns - expected_ns) / 1e6
     print(f"{len(priors)} priors; on Motive's clock off by median {np.median(err_ms):.2f} ms, max {err_ms.max():.2f} ms")
-    assert inside.sum() >= 30 and np.median(err_ms) < 5.0 and err_ms.max() < 1000.0 / rate + 5.0, err_ms
-    assert all(p.valid for p in priors[-10:])  # BlazePose found the runner
+    assert inside.sum() >= 100 and np.median(err_ms) < 5.0 and err_ms.max() < 1000.0 / rate + 5.0, err_ms
+    assert sum(p.valid for p in priors) >= 0.9 * len(priors)  # BlazePose found the walker
     # a file beside a live stream plays as a camera started with it: frame k at the first marker frame + k / 30 s
     raw = [m for m in (r.decode().message for r in iter_recording(out, topics=["markers/raw"])) if type(m).__name__ == "MarkerFrame"]
     lag_ms = np.array([(p.stamp_ns - raw[0].stamp_ns) / 1e6 - p.frame_index * 1000.0 / 30.0 for p in priors])

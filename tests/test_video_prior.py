@@ -359,6 +359,27 @@ def test_video_source_reads_frames():
         video_source(VIDEO.with_name("missing.mp4"))
 
 
+def test_a_live_source_hands_a_slow_reader_the_newest_frame():
+    """latest_only (live sources' default): a thread grabs frames as they come; a reader slower
+    than the source gets the newest frame, not the driver's backlog, and the ones it never saw are
+    counted (the file stands in for a camera: its thread reads it as fast as it decodes)."""
+    _need_video()
+    import time
+
+    from uuomocap.protocol.video import video_source
+
+    with video_source(VIDEO, latest_only=True) as video:
+        first = video.read()
+        time.sleep(1.0)  # the estimator busy: meanwhile the source went on
+        later = video.read()
+        rest = list(iter(video.read, None))
+    assert first.index == 0 and first.arrival_ns > 0
+    assert later.index > 1 and later.arrival_ns > first.arrival_ns and video.dropped >= later.index - 1
+    assert all(b.index > a.index for a, b in zip([later] + rest, rest))  # newer each time, then the end
+    with video_source(VIDEO) as video:  # a file otherwise: every frame, in order, no grab thread
+        assert [f.index for f in video][:5] == [0, 1, 2, 3, 4] and video.dropped == 0
+
+
 def test_prior_file_validation(tmp_path):
     from uuomocap.protocol.prior_file import PriorFileError, read_prior_npz, write_prior_npz
 
