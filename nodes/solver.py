@@ -58,7 +58,9 @@ class Solver(Node):
         "prior": Port("body/prior", types=("BodyPrior",), optional=True),
     }
     PUBLISHES = {"solved": "body/solved"}
-    STOP_TIMEOUT_S = 60  # a bootstrap in progress finishes before the node stops
+    # a bootstrap in progress finishes before the node stops, then the drain (<= DRAIN_MAX_S) and the take's end:
+    # beside a live video estimator on 2 cores a bootstrap took 38-42 s and 60 s ended the node by SIGALRM (session 38)
+    STOP_TIMEOUT_S = 120
     # stopped mid-take (Ctrl-C on a live graph): solve the frames still queued, then flush the lag
     # (on_stop) - before this the recording lost the last lag frames' refined results and any backlog
     DRAIN_ON_STOP_S = 0.5

@@ -45,6 +45,7 @@ class VideoPriorConfig:
     max_frames: int = 0  # 0 = all
     sync_to: str = ""  # marker topic whose capture clock stamps the priors ('' = the video's clock + clock_offset_s)
     sync_window_s: float = 10.0  # marker frames this recent set the clock mapping (drift, restarts)
+    max_late_s: float = 1.5  # a file beside a live stream drops a frame this late (the first second waits for the clock)
 
     def __post_init__(self):
         object.__setattr__(self, "video", str(self.video))  # video:=0 from a launch file arrives as a number
@@ -52,8 +53,8 @@ class VideoPriorConfig:
             raise ValueError(f"parameter 'video': no such video file {self.video!r}")
         if not (self.estimator == "blazepose" or self.estimator.startswith("onnx-hmr:")):
             raise ValueError(f"parameter 'estimator': {self.estimator!r} is not 'blazepose' or 'onnx-hmr:MODEL'")
-        if self.speed < 0 or self.window < 1 or self.batch_frames < 1 or self.max_frames < 0:
-            raise ValueError("speed >= 0, window >= 1, batch_frames >= 1 and max_frames >= 0 are required")
+        if self.speed < 0 or self.window < 1 or self.batch_frames < 1 or self.max_frames < 0 or not self.max_late_s > 0:
+            raise ValueError("speed >= 0, window >= 1, batch_frames >= 1, max_frames >= 0 and max_late_s > 0 are required")
         if self.lockstep and not self.ack_from:
             raise ValueError("lockstep needs ack_from: the nodes whose acknowledgements pace the video")
 
@@ -132,8 +133,8 @@ class VideoPrior(Node):
                 return not self.stopping
             now = time.monotonic_ns()
             stamp, capture = self.bridge.frame_times(frame.stamp_ns, self.video.live, frame.arrival_ns or now)
-            if not self.video.live:  # a file frame waits for its moment, and is dropped once the next one's has come:
-                if stamp < now - int(1e9 / self.video.rate_hz):  # like a camera's, the priors keep up, not a backlog
+            if not self.video.live:  # a file frame waits for its moment; too late, it is dropped as a camera's would be
+                if stamp < now - int(c.max_late_s * 1e9):
                     self.count("dropped_behind")
                     return not self.stopping
                 if not self.sleep_until(stamp):

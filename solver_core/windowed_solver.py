@@ -730,6 +730,7 @@ class WindowedSolver:
         self._vertex_faces = vertex_face_table(model.faces, model.v_template.shape[0])
         self._priors: deque = deque(maxlen=config.prior_buffer)
         self._prior72: deque = deque(maxlen=config.prior_buffer)
+        self._first_valid_prior: int | None = None  # stamp of the first valid prior received
         self.stats: dict = {"frames": 0, "bootstraps": 0, "rebootstraps": 0, "new_tracks": 0, "slips": 0,
                             "rechecks": 0, "reassigned": 0, "bootstrap_seconds": []}
         self.timing = {"estimate_s": 0.0, "refine_s": 0.0, "estimates": 0, "refines": 0}
@@ -825,6 +826,8 @@ class WindowedSolver:
         # the per-frame pose prior: (72,) world root (before the yaw) + body, computed once per prior
         root = rotation_vector(self.r_wc @ rotation_matrices(go)) if camera_frame else go
         self._prior72.append((int(stamp_ns), bool(valid), np.concatenate([root, bp.reshape(-1)])))
+        if valid and self._first_valid_prior is None:
+            self._first_valid_prior = int(stamp_ns)
 
     def add_markers(self, stamp_ns: int, positions, visible=None, track_ids=None, frame_index: int | None = None) -> list[WindowResult]:
         """One capture frame: positions (M,3) metres (NaN where missing), visible (M,) bool or None,
@@ -1787,6 +1790,16 @@ class WindowedSolver:
             bad_frames = min(self._degrade_run, len(self._history), self._boot.maxlen - 1)
             self._boot.extend(list(self._history)[len(self._history) - bad_frames:])
             self._degrade_run = 0
+        # A lock made before any video prior had come (a camera started late, a subject facing away
+        # from BlazePose's face-based detector) re-bootstraps once priors have come for a bootstrap
+        # window: the upgrades and the per-frame prior need a lock on the video's axes, so without
+        # it the take ran markers-only to its end (session 38: 115 mm on a 20 s walk whose first
+        # 3.2 s had no valid prior).  Recent frames start the window, as above.
+        if (not self.has_prior and self._boot is None and self._first_valid_prior is not None
+                and self._first_valid_prior <= frame.stamp - int(c.bootstrap_s * 1e9)):
+            self._boot = self._new_boot_buffer()
+            self._boot.extend(list(self._history)[-min(len(self._history), self._boot.maxlen - 1):])
+            self.stats["prior_rebootstraps"] = self.stats.get("prior_rebootstraps", 0) + 1
         # lock upgrade once the take has grown enough since the lock was estimated
         self._poll_upgrade()
         if (c.upgrade_frames > 0 and self._boot is None and self._reservoir_seen >= self._MIN_UPGRADE_FRAMES
