@@ -84,9 +84,9 @@ class Namer(Node):
         new = name_markers_with_points(model, betas, msg.marker_faces, msg.marker_bary, msg.marker_parts, faces, bary,
                                        names, self.naming)
         if new != self.names:
-            named = sum(1 for n in new if n)
-            from_layout = sum(1 for n in new if n in set(names))
-            self.log.info("frame %d: %d markers named (%d from %s)", msg.frame_index, named, from_layout, self.config.layout)
+            named, layout_names = sum(1 for n in new if n), set(names)
+            how = f"{sum(1 for n in new if n in layout_names)} from {self.config.layout}" if layout_names else "segment names"
+            self.log.info("frame %d: %d markers named (%s)", msg.frame_index, named, how)
             self.count("renamed")
         self.names, self.lock_key = new, key
 
