@@ -127,7 +127,9 @@ class VideoSource:
                 raise VideoError(f"video file not found: {path}")
             self.capture = cv2.VideoCapture(str(path))
         if not self.capture.isOpened():
-            raise VideoError(f"cannot open {self.name} (unsupported codec or device busy)")
+            why = ("unreachable, or a stream OpenCV's FFmpeg cannot read" if is_stream_url(source) else
+                   "no such camera, or another program holds it" if self.live else "unsupported codec")
+            raise VideoError(f"cannot open {self.name} ({why})")
         fps = float(self.capture.get(cv2.CAP_PROP_FPS) or 0.0)
         if rate_hz is not None:
             self.rate = exact_rate(float(rate_hz))

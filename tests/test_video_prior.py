@@ -381,6 +381,19 @@ def test_a_live_source_hands_a_slow_reader_the_newest_frame():
         assert [f.index for f in video][:5] == [0, 1, 2, 3, 4] and video.dropped == 0
 
 
+def test_live_sources_that_cannot_be_opened_say_which_and_why():
+    """A camera index or a stream URL is a live source; when it cannot be opened the error names it
+    (the live graphs' video:= argument; the node fails its setup with this message)."""
+    from uuomocap.protocol.video import VideoError, is_live_source, is_stream_url, video_source
+
+    assert is_live_source(0) and is_live_source("7") and is_live_source("rtsp://10.0.0.7:8554/live")
+    assert is_stream_url("http://10.0.0.7:8080/video") and not is_stream_url("file:///tmp/a.mp4") and not is_live_source("a.mp4")
+    with pytest.raises(VideoError, match="camera 63 .no such camera"):
+        video_source(63)
+    with pytest.raises(VideoError, match=r"rtsp://127.0.0.1:9/none \(unreachable"):
+        video_source("rtsp://127.0.0.1:9/none")  # nothing listens on the discard port
+
+
 def test_prior_file_validation(tmp_path):
     from uuomocap.protocol.prior_file import PriorFileError, read_prior_npz, write_prior_npz
 
