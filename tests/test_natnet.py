@@ -344,35 +344,29 @@ def _markers_with_ghosts(i: int, rng: np.random.Generator, rate_hz: float) -> nn
                           timestamp=5.0 + t)
 
 
-def test_live_graph_natnet_source_tracker_recorder(tmp_path):
-    """Real sockets end to end, started by the launcher from launch/live_natnet.yaml:
-    NatNet UDP server -> natnet_source -> tracker -> recorder (MCAP)."""
+def _run_live_natnet(tmp_path, launch_args: list[str], seed: int, t0_s: float = 5.0, timeout_s: float = 60.0) -> tuple[list, str]:
+    """Stream `_markers_with_ghosts` at 120 Hz like Motive (continuously from the first client on,
+    frame i stamped t0_s + i / 120 on Motive's clock) while ``uuomocap launch live_natnet
+    *launch_args`` runs; -> ((this host's monotonic ns, Motive timestamp s) of every frame sent,
+    the nodes' logs).  Asserts the launcher's exit code 0."""
     import subprocess
     import sys
 
-    pytest.importorskip("uuomocap.nodes.base")
-    from uuomocap.nodes.base import discover_plugins
-    from uuomocap.protocol.recording import iter_recording, read_markers_mcap
-
-    missing = {"natnet_source", "tracker", "recorder"} - set(discover_plugins())
-    if missing:
-        pytest.skip(f"node plugins not installed: {sorted(missing)} (pip install -e .)")
-    rate, n_frames = 120.0, 240
-    out = tmp_path / "live.mcap"
-    errors: list = []
-    done = threading.Event()
+    rate, sent, errors, done = 120.0, [], [], threading.Event()
 
     def motive_like(server):
-        """Streams continuously from the first client on, like Motive, until the test is done."""
         try:
-            rng = np.random.default_rng(3)
-            deadline = time.monotonic() + 60
+            rng = np.random.default_rng(seed)
+            deadline = time.monotonic() + timeout_s
             while not server.clients and not done.is_set() and time.monotonic() < deadline:
                 server.serve_commands(0.05)
             start, i = time.monotonic(), 0
             while not done.is_set() and time.monotonic() < deadline:
                 server.serve_commands(0.0)
-                server.send_frame(_markers_with_ghosts(i, rng, rate))
+                f = _markers_with_ghosts(i, rng, rate)
+                f = nn.FrameOfData(frame_number=f.frame_number, labeled_markers=f.labeled_markers, timestamp=t0_s + i / rate)
+                sent.append((time.monotonic_ns(), f.timestamp))
+                server.send_frame(f)
                 i += 1
                 time.sleep(max(0.0, start + i / rate - time.monotonic()))
         except Exception as exc:
@@ -382,15 +376,31 @@ def test_live_graph_natnet_source_tracker_recorder(tmp_path):
         streamer = threading.Thread(target=motive_like, args=(server,), daemon=True)
         streamer.start()
         try:
-            cmd = [sys.executable, "-m", "uuomocap.cli", "launch", "--log-dir", str(tmp_path), "--timeout", "60",
-                   "live_natnet", f"command_port:={server.address[1]}", f"max_frames:={n_frames}", f"out:={out}"]
-            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=90)
+            cmd = [sys.executable, "-m", "uuomocap.cli", "launch", "--log-dir", str(tmp_path), "--timeout", str(int(timeout_s)),
+                   "live_natnet", f"command_port:={server.address[1]}", *launch_args]
+            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s + 30)
             logs = "".join(f"--- {p.name}\n{p.read_text()}" for p in sorted(tmp_path.glob("*.log")))
             assert proc.returncode == 0, proc.stderr + logs
         finally:
             done.set()
             streamer.join(timeout=5)
     assert not errors
+    return sent, logs
+
+
+def test_live_graph_natnet_source_tracker_recorder(tmp_path):
+    """Real sockets end to end, started by the launcher from launch/live_natnet.yaml:
+    NatNet UDP server -> natnet_source -> tracker -> recorder (MCAP)."""
+    pytest.importorskip("uuomocap.nodes.base")
+    from uuomocap.nodes.base import discover_plugins
+    from uuomocap.protocol.recording import iter_recording, read_markers_mcap
+
+    missing = {"natnet_source", "tracker", "recorder"} - set(discover_plugins())
+    if missing:
+        pytest.skip(f"node plugins not installed: {sorted(missing)} (pip install -e .)")
+    rate, n_frames = 120.0, 240
+    out = tmp_path / "live.mcap"
+    _run_live_natnet(tmp_path, [f"max_frames:={n_frames}", f"out:={out}"], seed=3)
     counts: dict[str, int] = {}
     for rec in iter_recording(out):
         counts[rec.topic] = counts.get(rec.topic, 0) + 1
@@ -413,10 +423,6 @@ def test_live_video_prior_is_stamped_on_the_mocap_clock(tmp_path):
     as a live camera) stamps each prior on Motive's clock, which starts at 1000 s and shares no epoch
     with this host's: the time the server sent a frame, mapped through the server's own send log,
     is where the prior lands (within a frame of the 120 Hz stream)."""
-    import subprocess
-    import sys
-    from pathlib import Path
-
     from uuomocap.model_fetch import ModelFetchError, ensure_pose_models
     from uuomocap.nodes.base import discover_plugins
     from uuomocap.protocol.recording import iter_recording
@@ -433,42 +439,8 @@ def test_live_video_prior_is_stamped_on_the_mocap_clock(tmp_path):
     video = tmp_path / "s" / "video.mp4"  # a rendered walker, 30 Hz
     rate, n_frames, motive_t0 = 120.0, 1200, 1000.0
     out = tmp_path / "live.mcap"
-    sent: list[tuple[int, float]] = []  # (this host's monotonic ns when sent, Motive timestamp s)
-    errors: list = []
-    done = threading.Event()
-
-    def motive_like(server):
-        try:
-            rng = np.random.default_rng(5)
-            deadline = time.monotonic() + 90
-            while not server.clients and not done.is_set() and time.monotonic() < deadline:
-                server.serve_commands(0.05)
-            start, i = time.monotonic(), 0
-            while not done.is_set() and time.monotonic() < deadline:
-                server.serve_commands(0.0)
-                f = _markers_with_ghosts(i, rng, rate)
-                f = nn.FrameOfData(frame_number=f.frame_number, labeled_markers=f.labeled_markers, timestamp=motive_t0 + i / rate)
-                sent.append((time.monotonic_ns(), f.timestamp))
-                server.send_frame(f)
-                i += 1
-                time.sleep(max(0.0, start + i / rate - time.monotonic()))
-        except Exception as exc:
-            errors.append(exc)
-
-    with nn.NatNetServer(nn.ServerInfo(natnet_version=(4, 1, 0, 0)), command_port=0) as server:
-        streamer = threading.Thread(target=motive_like, args=(server,), daemon=True)
-        streamer.start()
-        try:
-            cmd = [sys.executable, "-m", "uuomocap.cli", "launch", "--log-dir", str(tmp_path), "--timeout", "100",
-                   "live_natnet", f"command_port:={server.address[1]}", f"max_frames:={n_frames}", f"out:={out}",
-                   f"video:={video}"]
-            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=130)
-            logs = "".join(f"--- {p.name}\n{p.read_text()}" for p in sorted(tmp_path.glob("*.log")))
-            assert proc.returncode == 0, proc.stderr + logs
-        finally:
-            done.set()
-            streamer.join(timeout=5)
-    assert not errors
+    sent, logs = _run_live_natnet(tmp_path, [f"max_frames:={n_frames}", f"out:={out}", f"video:={video}"], seed=5,
+                                  t0_s=motive_t0, timeout_s=100.0)
     priors = [m for m in (r.decode().message for r in iter_recording(out, topics=["body/prior"])) if type(m).__name__ == "BodyPrior"]
     # 10 s of video beside 10 s of markers: frames before the clock settled (1 s) and any the estimator
     # fell behind on are dropped, as a camera's would be
