@@ -50,6 +50,7 @@ class Namer(Node):
 
         self.naming = MarkerNamingConfig(max_distance_m=self.config.max_distance_mm / 1000.0)
         self.models: dict = {}
+        self.templates: dict = {}  # body model -> a template layout's (faces, bary, names)
         self.names: list[str] = []
         self.lock_key: tuple | None = None
         model = self._model(self.config.body_model)
@@ -66,6 +67,10 @@ class Namer(Node):
     def _layout(self, model, betas: np.ndarray, body_model: str):
         from uuomocap.solver_core.marker_naming import load_layout
 
+        if self.config.layout.lower().endswith(".npz"):  # a template's points do not depend on the shape: read it once
+            if body_model not in self.templates:
+                self.templates[body_model] = load_layout(self.config.layout, model, betas, body_model)
+            return self.templates[body_model]
         return load_layout(self.config.layout, model, betas, body_model)
 
     def on_solved(self, msg: SolvedFrame, env) -> None:
