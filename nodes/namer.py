@@ -1,19 +1,20 @@
-"""namer: the markers of the stream with names (``markers/named``), under the solver's lock.
+"""namer: the markers of the stream with names (``markers/named``), as the solver labelled them.
 
 Inputs: ``markers/raw`` (MarkerFrame: the frames the solver solves - remap it to
 ``markers/tracked`` where the solver reads the tracker) and ``body/solved`` (SolvedFrame: each
 marker's surface point under the current lock, the solved shape).  Output ``markers/named``: every
 marker frame as it came, with ``labels`` - Vicon Plug-in Gait names, a lab's own template's, or
 ``LThigh1``-style segment names (``solver_core.marker_naming``, the same naming as ``uuomocap
-label``) - under the lock current when the frame arrives; '' for a slot without a surface point
-(before the bootstrap locks, an empty tracker slot, a new track not yet assigned).  Names follow
-lock upgrades and re-assignments as they land; ``uuomocap label`` names a whole recorded take under
-its final lock after the take.
+label``) - under the lock its solved frame came with: a frame goes out when its first answer
+(the estimate) does, so the names are the body's, with the body's latency ('' for a slot without a
+surface point: an empty tracker slot, a new track not yet assigned).  Frames wait at most
+``max_waiting_frames`` (then go out as they are); at the end of the solved stream, or a stop, every
+waiting frame goes out.  ``uuomocap label`` names a whole recorded take under its final lock.
 """
-
 from __future__ import annotations
 
 import dataclasses
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,10 +29,12 @@ class NamerConfig:
     layout: str = "segments"  # segments | plug-in-gait | template .npz (`uuomocap sample motion-from-markers`)
     max_distance_mm: float = 100.0  # furthest a marker may sit from a layout point and take its name
     body_model: str = "open-low"  # for solved frames that do not name theirs
+    # frames waiting for their solved answer (a bootstrap of ~10-40 s on 2 cores: 120 Hz x 60 s here; memory bound)
+    max_waiting_frames: int = 7200
 
     def __post_init__(self):
-        if not self.max_distance_mm > 0:
-            raise ValueError("max_distance_mm must be > 0")
+        if not self.max_distance_mm > 0 or self.max_waiting_frames < 1:
+            raise ValueError("max_distance_mm > 0 and max_waiting_frames >= 1 are required")
         if self.layout not in ("segments", "plug-in-gait") and not self.layout.lower().endswith(".npz"):
             raise ValueError(f"layout {self.layout!r}: segments, plug-in-gait or a template .npz")
 
@@ -53,6 +56,8 @@ class Namer(Node):
         self.templates: dict = {}  # body model -> a template layout's (faces, bary, names)
         self.names: list[str] = []
         self.lock_key: tuple | None = None
+        self.waiting: deque[MarkerFrame] = deque()  # marker frames whose solved answer has not come yet
+        self.solver_seen, self.ended = False, set()
         model = self._model(self.config.body_model)
         self._layout(model, np.zeros(model.num_betas), self.config.body_model)  # a bad template fails at start-up
         self.log.info("naming %s with %s", self.inputs["markers"].topic, self.config.layout)
@@ -74,8 +79,15 @@ class Namer(Node):
         return load_layout(self.config.layout, model, betas, body_model)
 
     def on_solved(self, msg: SolvedFrame, env) -> None:
-        if msg.marker_faces is None or msg.kind == "revised":  # revised frames are old frames solved again
+        if msg.kind == "revised":  # an old frame solved again: its markers went out with its first answer
             return
+        self.solver_seen = True
+        if msg.marker_faces is not None:
+            self._rename(msg)
+        while self.waiting and self.waiting[0].stamp_ns <= msg.stamp_ns:  # this frame, and any the solver skipped
+            self._publish(self.waiting.popleft(), self.names)
+
+    def _rename(self, msg: SolvedFrame) -> None:
         # the names change only with the lock (faces, points, parts); a frame's shape alone moves them by nothing
         key = (msg.body_model, msg.marker_faces.tobytes(), msg.marker_bary.tobytes(), tuple(msg.marker_parts))
         if key == self.lock_key:
@@ -96,13 +108,28 @@ class Namer(Node):
         self.names, self.lock_key = new, key
 
     def on_markers(self, msg: MarkerFrame, env) -> None:
-        names = self.names
+        if len(self.waiting) >= self.config.max_waiting_frames:  # the solver is far behind or gone: bounded memory
+            self.count("unnamed_waited_too_long")
+            self._publish(self.waiting.popleft(), [])
+        self.waiting.append(msg)
+
+    def _publish(self, msg: MarkerFrame, names: list[str]) -> None:
         if names and len(names) != msg.positions.shape[0]:  # another stream's slots: never guess
             self.count("unnamed_size_mismatch")
             names = []
         self.publish("named", dataclasses.replace(msg, labels=list(names)), msg.stamp_ns)
         self.count("named_frames" if names else "unnamed_frames")
 
+    def _release_all(self) -> None:
+        while self.waiting:
+            self._publish(self.waiting.popleft(), self.names)
+
     def on_eos(self, port: str, env) -> None:
-        if port == "markers":
+        self.ended.add(port)
+        # the solved stream ends after the markers (the take's end solves the last frames); without a solver, at the markers' end
+        if "solved" in self.ended or ("markers" in self.ended and not self.solver_seen):
+            self._release_all()
             self.end_stream("named")
+
+    def on_stop(self) -> None:
+        self._release_all()  # stopped mid-take: the recording keeps every frame
