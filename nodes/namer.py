@@ -9,7 +9,7 @@ label``) - under the lock its solved frame came with: a frame goes out when its 
 (the estimate) does, so the names are the body's, with the body's latency ('' for a slot without a
 surface point: an empty tracker slot, a new track not yet assigned).  Frames wait at most
 ``max_waiting_frames`` (then go out as they are); at the end of the solved stream, or a stop, every
-waiting frame goes out.  ``uuomocap label`` names a whole recorded take under its final lock.
+waiting frame goes out (without a solver in the graph, only then).  ``uuomocap label`` names a whole recorded take under its final lock.
 """
 from __future__ import annotations
 
@@ -57,7 +57,6 @@ class Namer(Node):
         self.names: list[str] = []
         self.lock_key: tuple | None = None
         self.waiting: deque[MarkerFrame] = deque()  # marker frames whose solved answer has not come yet
-        self.solver_seen, self.ended = False, set()
         model = self._model(self.config.body_model)
         self._layout(model, np.zeros(model.num_betas), self.config.body_model)  # a bad template fails at start-up
         self.log.info("naming %s with %s", self.inputs["markers"].topic, self.config.layout)
@@ -81,7 +80,6 @@ class Namer(Node):
     def on_solved(self, msg: SolvedFrame, env) -> None:
         if msg.kind == "revised":  # an old frame solved again: its markers went out with its first answer
             return
-        self.solver_seen = True
         if msg.marker_faces is not None:
             self._rename(msg)
         while self.waiting and self.waiting[0].stamp_ns <= msg.stamp_ns:  # this frame, and any the solver skipped
@@ -125,9 +123,9 @@ class Namer(Node):
             self._publish(self.waiting.popleft(), self.names)
 
     def on_eos(self, port: str, env) -> None:
-        self.ended.add(port)
-        # the solved stream ends after the markers (the take's end solves the last frames); without a solver, at the markers' end
-        if "solved" in self.ended or ("markers" in self.ended and not self.solver_seen):
+        # the solved stream ends after the markers (the take's end solves the last frames; a bootstrap still
+        # running when a short live take ends answers them all later): only its end releases the rest
+        if port == "solved":
             self._release_all()
             self.end_stream("named")
 
