@@ -42,6 +42,20 @@ def emit(args: Any, data: dict, text: str | None = None) -> None:
     print(text)
 
 
+def emit_bench(args: Any, data: dict, text: str) -> None:
+    """A benchmark's ``--json [FILE]``: JSON on stdout for ``--json`` alone ('-'), else ``text``,
+    and the JSON also written to FILE when one was named."""
+    if getattr(args, "json", None) == "-":
+        json.dump(_jsonable(data), sys.stdout, indent=2)
+        sys.stdout.write("\n")
+        return
+    print(text)
+    if getattr(args, "json", None):
+        from pathlib import Path
+
+        Path(args.json).write_text(json.dumps(_jsonable(data), indent=2) + "\n")
+
+
 def add_json_flag(parser) -> None:
     parser.add_argument("--json", action="store_true", help="print machine-readable JSON instead of text")
 

@@ -15,14 +15,13 @@ when the solver caught up, and the steady-state latency of every frame from then
 
 from __future__ import annotations
 
-import json
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from uuomocap.commands import UserError
+from uuomocap.commands import UserError, emit_bench
 
 
 def register_bench(subparsers) -> None:
@@ -187,10 +186,5 @@ def run(args) -> int:
             f"p99 {lat.get('p99', float('nan')):.2f} ms  max {lat.get('max', float('nan')):.2f} ms\n"
             + steady_text(res) +
             f"{'OK' if ok else 'FAILED'}  (recording and node logs: {work})")
-    if args.json == "-":
-        print(json.dumps(res, indent=2))
-    else:
-        print(text)
-        if args.json:
-            Path(args.json).write_text(json.dumps(res, indent=2))
+    emit_bench(args, res, text)
     return 0 if ok else 1

@@ -14,7 +14,6 @@ Real time: a 20 s take takes ~1.5 min beside the lead.
 from __future__ import annotations
 
 import argparse
-import json
 import re
 import socket
 import subprocess
@@ -25,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from uuomocap.commands import UserError
+from uuomocap.commands import UserError, emit_bench
 
 
 def register_bench(subparsers) -> None:
@@ -123,10 +122,5 @@ def run(args) -> int:
             f"bootstrap {' / '.join(f'{b:.1f}' for b in res['bootstrap_s']) or '-'} s; video priors {res['priors']} "
             f"({res['priors_with_person']} with a person); markers/named: {res['named_frames']} frames named, "
             f"{res['names_last_frame']} names on the last\n(recording and node logs: {work})")
-    if args.json == "-":
-        print(json.dumps(res, indent=2))
-    else:
-        print(text)
-        if args.json:
-            Path(args.json).write_text(json.dumps(res, indent=2))
+    emit_bench(args, res, text)
     return 0 if code == 0 else 1
