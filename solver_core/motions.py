@@ -26,7 +26,7 @@ arm hangs down with ``Rz(-80deg)`` (right arm ``Rz(+80deg)``), forward arm flexi
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -489,6 +489,72 @@ def posed_extremes(model, betas: np.ndarray, poses: np.ndarray, up_axis: str, ch
     return np.concatenate(lows), np.concatenate(joints)
 
 
+# The procedural curves, like AMASS poses, are rotations of a body whose rest pose is SMPL's
+# T-pose: every arm bone straight out sideways.  A model that rests otherwise - the open body
+# model (MakeHuman / Anny) rests in an A-pose, upper arms 50 degrees down and elbows bent 47
+# degrees forward - needs those rotations re-expressed against its own rest, or "arms hanging
+# at the sides" (Rz(-80deg) from a T-pose) swings its A-pose arms through the chest.  Bones
+# aligned: joint -> (child joint whose position gives the bone, T-pose direction in canonical
+# axes: x left, y up, z forward).  Legs and spine rest as in the T-pose on both models.
+TPOSE_ARM_BONES = {
+    L_SHOULDER: (L_ELBOW, (1.0, 0.0, 0.0)), R_SHOULDER: (R_ELBOW, (-1.0, 0.0, 0.0)),
+    L_ELBOW: (L_WRIST, (1.0, 0.0, 0.0)), R_ELBOW: (R_WRIST, (-1.0, 0.0, 0.0)),
+    L_WRIST: (L_HAND, (1.0, 0.0, 0.0)), R_WRIST: (R_HAND, (-1.0, 0.0, 0.0)),
+}
+
+
+def _minimal_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Smallest rotation (3, 3) taking unit direction a onto unit direction b."""
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    axis, cos = np.cross(a, b), float(np.clip(a @ b, -1.0, 1.0))
+    sin = float(np.linalg.norm(axis))
+    if sin < 1e-9:
+        if cos > 0:
+            return np.eye(3)
+        perp = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+        return axis_angle_to_matrices((np.pi * perp / np.linalg.norm(perp))[None])[0]
+    return axis_angle_to_matrices((np.arctan2(sin, cos) * axis / sin)[None])[0]
+
+
+# Rest bones within this of the T-pose direction are left alone: SMPL's own rest arms sit a few
+# degrees off the ideal T-pose and AMASS poses are exact for SMPL as they are.
+TPOSE_TOLERANCE_DEG = 20.0
+
+
+def tpose_alignment(model, betas: np.ndarray) -> np.ndarray:
+    """Per joint, the global rotation (24, 3, 3) taking the model's rest bone onto the T-pose
+    direction (``TPOSE_ARM_BONES``; identity elsewhere and for bones within
+    ``TPOSE_TOLERANCE_DEG`` of it, e.g. SMPL's)."""
+    from .lbs import forward as lbs_forward
+
+    with torch.no_grad():
+        out = lbs_forward(model, torch.as_tensor(np.asarray(betas, dtype=np.float32)).reshape(1, -1), torch.zeros(1, 24, 3))
+    rest = out.joints[0].double().numpy()
+    align = np.tile(np.eye(3), (24, 1, 1))
+    for joint, (child, direction) in TPOSE_ARM_BONES.items():
+        bone = (rest[child] - rest[joint]) / np.linalg.norm(rest[child] - rest[joint])
+        if np.degrees(np.arccos(np.clip(bone @ np.asarray(direction), -1.0, 1.0))) > TPOSE_TOLERANCE_DEG:
+            align[joint] = _minimal_rotation(bone, np.asarray(direction))
+    return align
+
+
+def rotations_from_tpose(local_rot: np.ndarray, align: np.ndarray, parents) -> np.ndarray:
+    """T-pose local rotations (F, 24, 3, 3) -> the same posture on a model whose rest bones
+    ``align`` (``tpose_alignment``) takes onto the T-pose: each joint's global rotation becomes
+    G_j A_j, so the local one is A_parent^T M_j A_j."""
+    out = local_rot.copy()
+    for j in range(1, 24):
+        out[:, j] = align[int(parents[j])].T @ local_rot[:, j] @ align[j]
+    return out
+
+
+def poses_from_tpose(poses: np.ndarray, model, betas: np.ndarray) -> np.ndarray:
+    """(F, 72) axis-angle poses of a T-pose body (AMASS, the procedural curves) -> ``model``'s."""
+    rot = axis_angle_to_matrices(np.asarray(poses, dtype=np.float64).reshape(-1, 3)).reshape(-1, 24, 3, 3)
+    rot = rotations_from_tpose(rot, tpose_alignment(model, betas), [int(p) for p in model.parents])
+    return matrices_to_axis_angle(rot).reshape(-1, 72)
+
+
 def assemble_world_poses(curves: ProceduralCurves, up_axis: str = "+z") -> np.ndarray:
     """Curves -> (F, 72) world-frame axis-angle (root = heading . canonical->world . pelvis)."""
     rot = curves.local_rot.copy()
@@ -514,6 +580,8 @@ def make_procedural_motion(
     on the world origin.
     """
     curves = procedural_curves(name, duration_s, rate_hz, seed)
+    curves = replace(curves, local_rot=rotations_from_tpose(curves.local_rot, tpose_alignment(model, betas),
+                                                            [int(p) for p in model.parents]))
     poses = assemble_world_poses(curves, up_axis)
     lowest, joints = posed_extremes(model, betas, poses, up_axis)
     ui, hi = up_index(up_axis), horizontal_indices(up_axis)

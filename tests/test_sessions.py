@@ -353,3 +353,31 @@ def test_amass_npz_motion_source(tmp_path, model):
     np.savez(bad, poses=np.zeros((3, 72)))
     with pytest.raises(ValueError, match="missing trans"):
         load_amass_npz(bad)
+
+
+def test_motions_are_re_expressed_against_an_a_pose_rest(model):
+    """The open model rests in an A-pose (upper arms ~50 deg down, elbows bent): T-pose rotations
+    (the procedural curves, AMASS) used as they are swung its arms through the chest."""
+    import torch
+
+    from uuomocap.solver_core.lbs import forward
+    from uuomocap.solver_core.motions import (L_ELBOW, L_SHOULDER, L_WRIST, R_ELBOW, R_SHOULDER, R_WRIST,
+                                              axis_angle_to_matrices, make_procedural_motion, poses_from_tpose)
+
+    def unit(d):
+        return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+    betas = np.zeros(16)
+    tpose = poses_from_tpose(np.zeros((1, 72)), model, betas)  # zero T-pose rotations on this model
+    j = forward(model, torch.zeros(1, 16), torch.as_tensor(tpose, dtype=torch.float32)).joints[0].numpy()
+    for a, b, side in ((L_SHOULDER, L_ELBOW, 1), (L_ELBOW, L_WRIST, 1), (R_SHOULDER, R_ELBOW, -1), (R_ELBOW, R_WRIST, -1)):
+        assert unit(j[b] - j[a]) @ np.array([side, 0.0, 0.0]) > np.cos(np.radians(1.0))  # straight out sideways
+    walk = make_procedural_motion("walk", model, betas, 2.0, 30.0, seed=2)
+    joints = forward(model, torch.zeros(1, 16), torch.as_tensor(walk.poses, dtype=torch.float32),
+                     torch.as_tensor(walk.trans, dtype=torch.float32)).joints.numpy()
+    root = axis_angle_to_matrices(walk.poses[:, :3])  # canonical body axes (x left, y up) -> world
+    for shoulder, elbow, side in ((L_SHOULDER, L_ELBOW, 1), (R_SHOULDER, R_ELBOW, -1)):
+        upper = unit(np.einsum("fba,fb->fa", root, joints[:, elbow] - joints[:, shoulder]))
+        down = np.degrees(np.arccos(np.clip(-upper[:, 1], -1, 1)))
+        assert down.max() < 30.0, down.max()            # hanging, swinging +-18 deg
+        assert (side * upper[:, 0] > 0.05).all()          # the elbow outside the shoulder, not across the chest

@@ -13,7 +13,7 @@ change the motion, the shape, the layout or the camera):
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +21,9 @@ import numpy as np
 from uuomocap.protocol.session import save_session
 
 GENERATOR = "uuomocap sample make"
-GENERATOR_VERSION = 1  # bump when the same configuration would produce different data
+# bump when the same configuration would produce different data; 2: motions re-expressed against the
+# model's rest pose (the open model's A-pose arms had swung through the chest under T-pose rotations)
+GENERATOR_VERSION = 2
 
 DEFAULT_RANDOM_MARKERS = 40
 
@@ -95,6 +97,8 @@ def build_motion(cfg: SampleConfig, model, betas: np.ndarray):
         motion = retarget(parse_bvh(path), model, betas, cfg.up_axis)
     elif path.suffix.lower() == ".npz":
         motion = mo.change_up_axis(mo.load_amass_npz(path), cfg.up_axis)
+        # AMASS poses rotate SMPL's T-pose; a model resting otherwise (the open model's A-pose) gets them re-expressed
+        motion = replace(motion, poses=mo.poses_from_tpose(motion.poses, model, betas))
     else:
         raise ValueError(f"motion file {path} must be .bvh or an AMASS .npz")
     available = (motion.num_frames - 1) / motion.rate_hz - cfg.start_s

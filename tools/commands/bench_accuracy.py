@@ -43,6 +43,32 @@ PA_COLUMN = ("pa_mpjpe", "PA-MPJPE")  # --pa-mpjpe: per-frame similarity-aligned
 PART_COLUMNS = (("m2s", "m2s"), ("part_mpjpe", "MPJPE"), ("part_mpjve", "MPJVE"), ("part_found", "found%"))
 
 
+# uuo-window's live outputs, kept in its npz beside the recording it is scored as: rows of their own
+# (MPJPE / MPJVE, the part's joints on a partial body) so the near-online table comes from this command.
+LIVE_OUTPUT_ROWS = (("refined", "uuo-window fixed-lag"), ("estimate", "uuo-window estimate"))
+
+
+def live_output_metrics(out_npz: Path, gt_npz: Path) -> dict[str, dict]:
+    """{row name: metrics} for the fixed-lag refined and the causal estimate frames of a
+    uuo-window output (none when the npz has no such keys or a frame has no result)."""
+    from uuomocap.protocol.session import read_npz
+    from uuomocap.solver_core.metrics import mpjpe, mpjve
+    from uuomocap.solver_core.parts import PART_JOINTS
+
+    pred, gt = read_npz(out_npz), read_npz(gt_npz)
+    gj, rate = np.asarray(gt["joints"], np.float64), float(np.asarray(gt["mocap_framerate"]))
+    part = str(np.asarray(gt["part"])) if "part" in gt else ""
+    rows = {}
+    for kind, name in LIVE_OUTPUT_ROWS:
+        pj = np.asarray(pred.get(f"{kind}_joints", np.zeros(0)), np.float64)
+        if pj.shape != gj.shape or not np.isfinite(pj).all():
+            continue
+        rows[name] = {"mpjpe": mpjpe(pj, gj), "mpjve": mpjve(pj, gj, rate)}
+        if part in PART_JOINTS:
+            rows[name].update(part_mpjpe=mpjpe(pj, gj, PART_JOINTS[part]), part_mpjve=mpjve(pj, gj, rate, PART_JOINTS[part]))
+    return rows
+
+
 def default_cache() -> Path:
     base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
     return Path(base) / "uuomocap" / "bench"
@@ -193,6 +219,7 @@ def summarise(runs: list[dict]) -> dict:
 def format_tables(summary: dict, layout: list[tuple[str, str]], methods: list[str], pa_mpjpe: bool = False) -> str:
     """Paper-style tables: one per table group, rows = methods, 4 columns per scenario."""
     lines = []
+    name_w = max([16] + [len(m) + 1 for m in methods])
     tables: dict[str, list[str]] = {}
     for table, scen in layout:
         tables.setdefault(table, [])
@@ -205,12 +232,12 @@ def format_tables(summary: dict, layout: list[tuple[str, str]], methods: list[st
             cols = cols[:2] + (PA_COLUMN,) + cols[2:]
         widths = [max(8, len(h) + 1) for _, h in cols]
         width = sum(widths) + 1
-        head1 = f"{'':<16}" + "".join(f"|{s:^{width - 1}}" for s in scens) + "|"
-        head2 = f"{'method':<16}" + "".join("|" + "".join(f"{h:>{w}}" for (_, h), w in zip(cols, widths)) for _ in scens) + "|"
+        head1 = f"{'':<{name_w}}" + "".join(f"|{s:^{width - 1}}" for s in scens) + "|"
+        head2 = f"{'method':<{name_w}}" + "".join("|" + "".join(f"{h:>{w}}" for (_, h), w in zip(cols, widths)) for _ in scens) + "|"
         lines += [f"{table}  (mm, MPJVE mm/s{'; part joints, found% = markers on the right part' if partial else ''})",
                   head1, head2, "-" * len(head2)]
         for m in methods:
-            row = f"{m:<16}"
+            row = f"{m:<{name_w}}"
             for s in scens:
                 agg = summary.get(m, {}).get(s, {})
                 cells = ""
@@ -304,6 +331,9 @@ def run_bench(args) -> dict:
                     gt_m2s[key] = metrics["m2s_gt"]
                 metrics["m2s_gt"] = gt_m2s.get(key, float("nan"))
                 rec["metrics"] = metrics
+                if method == "uuo-window":
+                    for row, row_metrics in live_output_metrics(out, sdir / "gt.npz").items():
+                        results[(row, key)] = {"method": row, "session": key, "seconds": rec["seconds"], "metrics": row_metrics}
             except KeyboardInterrupt:
                 raise
             except UserError as exc:
@@ -315,11 +345,13 @@ def run_bench(args) -> dict:
             bar.update(1)
     bar.close()
 
+    rows = [m for m in methods] + [row for _, row in LIVE_OUTPUT_ROWS if any(r == row for r, _ in results)]
     runs = []
     for table, scen, cfg in jobs:
         key = session_key(cfg)
-        for method in methods:
-            runs.append({**results[(method, key)], "table": table, "scenario": scen})
+        for method in rows:
+            if (method, key) in results:
+                runs.append({**results[(method, key)], "table": table, "scenario": scen})
     summary = summarise(runs)
     layout = [(t, s) for t, s, _ in scenarios]
     return {
@@ -333,7 +365,7 @@ def run_bench(args) -> dict:
         "scenarios": [{"table": t, "scenario": s, "sessions": len(c)} for t, s, c in scenarios],
         "summary": summary,
         "runs": runs,
-        "table": format_tables(summary, layout, methods, pa_mpjpe=bool(getattr(args, "pa_mpjpe", False))),
+        "table": format_tables(summary, layout, rows, pa_mpjpe=bool(getattr(args, "pa_mpjpe", False))),
     }
 
 
