@@ -381,3 +381,16 @@ def test_motions_are_re_expressed_against_an_a_pose_rest(model):
         down = np.degrees(np.arccos(np.clip(-upper[:, 1], -1, 1)))
         assert down.max() < 30.0, down.max()            # hanging, swinging +-18 deg
         assert (side * upper[:, 0] > 0.05).all()          # the elbow outside the shoulder, not across the chest
+
+
+def test_demo_knows_a_session_from_an_older_generator(sessions, tmp_path):
+    """make demo reuses demo_out/session; one made before the arms were re-expressed is made again."""
+    from uuomocap.commands.demo import _generator_version
+    from uuomocap.synth import GENERATOR_VERSION
+
+    assert _generator_version(sessions[0] / "session.yaml") == GENERATOR_VERSION == 2
+    old = tmp_path / "session.yaml"
+    old.write_text((sessions[0] / "session.yaml").read_text().replace("generator_version: 2", "generator_version: 1"))
+    assert _generator_version(old) == 1
+    old.write_text("format: uuomocap-session/1\n")
+    assert _generator_version(old) is None and _generator_version(tmp_path / "missing.yaml") is None
