@@ -81,7 +81,7 @@ def test_export_names_the_problem_with_bad_input(take, tmp_path, capsys):
     empty = tmp_path / "empty.npz"
     write_npz(empty, {"betas": gt["betas"], "poses": np.full((3, 72), np.nan), "trans": np.full((3, 3), np.nan),
                       "joints": np.full((3, 24, 3), np.nan), "mocap_framerate": np.float64(30)})
-    cases = [([str(out), "--out", str(tmp_path / "a.fbx")], "write a .bvh, .trc or .c3d"),
+    cases = [([str(out), "--out", str(tmp_path / "a.fbx")], "write a .bvh, .trc, .c3d or .npz"),
              ([str(tmp_path / "missing.npz"), "--out", str(tmp_path / "a.bvh")], "file not found"),
              ([str(empty), "--out", str(tmp_path / "a.bvh")], "no solved frame")]
     for argv, message in cases:

@@ -394,3 +394,26 @@ def test_demo_knows_a_session_from_an_older_generator(sessions, tmp_path):
     assert _generator_version(old) == 1
     old.write_text("format: uuomocap-session/1\n")
     assert _generator_version(old) is None and _generator_version(tmp_path / "missing.yaml") is None
+
+
+def test_export_npz_gives_the_poses_of_a_t_pose_body(sessions, tmp_path, model):
+    """`uuomocap export OUT.npz --out x.npz`: the open model's poses (A-pose rest) as rotations of a
+    T-pose body - for the generated jump, exactly the procedural curves the generator started from."""
+    from uuomocap.cli import main
+    from uuomocap.protocol.session import read_npz
+    from uuomocap.solver_core.motions import (assemble_world_poses, axis_angle_to_matrices, poses_from_tpose,
+                                              procedural_curves)
+
+    gt = read_npz(sessions[0] / "gt.npz")
+    out = tmp_path / "tpose.npz"
+    assert main(["export", str(sessions[0] / "gt.npz"), "--out", str(out), "--session", str(sessions[0])]) == 0
+    exported = read_npz(out)
+    assert str(exported["rest_pose"]) == "tpose" and exported["poses"].shape == gt["poses"].shape
+    curves = assemble_world_poses(procedural_curves("jump", 2.0, 60.0, 7), "+z")
+    got = axis_angle_to_matrices(exported["poses"].reshape(-1, 3))
+    want = axis_angle_to_matrices(curves.reshape(-1, 3))
+    assert np.abs(got - want).max() < 1e-4
+    assert np.abs(exported["trans"] - gt["trans"]).max() < 1e-9 and float(exported["mocap_framerate"]) == 60.0
+    # and back: the model's own poses
+    back = axis_angle_to_matrices(poses_from_tpose(exported["poses"], model, gt["betas"]).reshape(-1, 3))
+    assert np.abs(back - axis_angle_to_matrices(gt["poses"].reshape(-1, 3))).max() < 1e-4

@@ -1,5 +1,6 @@
-"""``uuomocap export OUT.npz --out body.bvh|joints.trc|joints.c3d``: a solve for the tools animators
-and labs already use - the skeleton as BVH, or the joint centres as a marker file."""
+"""``uuomocap export OUT.npz --out body.bvh|joints.trc|joints.c3d|poses_tpose.npz``: a solve for the tools
+animators and labs already use - the skeleton as BVH, the joint centres as a marker file, or the poses as
+rotations of a T-pose body (SMPL's rest, what AMASS tools expect)."""
 
 from __future__ import annotations
 
@@ -26,10 +27,14 @@ def register(subparsers) -> None:
             "virtual markers in the capture's world (a TRC is turned +y up, as OpenSim reads every TRC).  A streamed "
             "solve (frame_betas) is written with its last shape's bones: frames solved under an earlier "
             "lock's shape and never revised move by that shape change.  Frames the solve left empty (NaN) are "
-            "gaps in a TRC/C3D and hold the nearest solved frame in a BVH (counted in the output)."),
+            "gaps in a TRC/C3D and hold the nearest solved frame in a BVH (counted in the output).  .npz: AMASS "
+            "layout (poses (F,72), trans, mocap_framerate) with the poses re-expressed as rotations of a T-pose "
+            "body - SMPL's rest.  OUT.npz's own poses rotate the solving model's rest, and the open body model "
+            "rests in an A-pose (upper arms 50 degrees down, elbows bent): read as SMPL poses they raise its "
+            "arms; these do not (the shape and the joints stay the open model's; unsolved frames stay NaN)."),
     )
     p.add_argument("pred", metavar="OUT.npz", help="solved output (uuomocap solve, or a recording's npz export)")
-    p.add_argument("--out", required=True, metavar="FILE", help=".bvh, .trc or .c3d")
+    p.add_argument("--out", required=True, metavar="FILE", help=".bvh, .trc, .c3d or .npz (T-pose-rest poses)")
     p.add_argument("--session", metavar="DIR", help="the session it was solved from (its up axis)")
     p.add_argument("--markers", metavar="FILE", help="the marker file it was solved from (its up axis)")
     p.add_argument("--up-axis", choices=("+z", "+y"), help="the capture world's up axis (default: the session's / "
@@ -83,8 +88,10 @@ def run_export(args) -> tuple[dict, str]:
 
     out = Path(args.out)
     kind = out.suffix.lower()
-    if kind not in (".bvh", ".trc", ".c3d"):
-        raise UserError(f"--out {out}: write a .bvh, .trc or .c3d")
+    if kind not in (".bvh", ".trc", ".c3d", ".npz"):
+        raise UserError(f"--out {out}: write a .bvh, .trc, .c3d or .npz")
+    if kind == ".npz" and out.resolve() == Path(args.pred).resolve():
+        raise UserError(f"--out {out} is the solve itself: choose another name")
     up = _up_axis(args)
     solve = load_solve(Path(args.pred), up_axis=up)
     rate = solve.rate_hz
@@ -97,7 +104,19 @@ def run_export(args) -> tuple[dict, str]:
     names = [solve.model.joint_names[j] for j in range(24)]
     info = {"out": str(out), "frames": solve.n, "rate_hz": rate, "unsolved_frames": int((~solved).sum()), "up_axis": up}
     try:
-        if kind == ".bvh":
+        if kind == ".npz":
+            from uuomocap.protocol.session import write_npz
+            from uuomocap.solver_core.motions import poses_to_tpose
+
+            if not np.isfinite(betas).all():
+                raise UserError(f"{args.pred}: betas hold NaN/inf")
+            write_npz(out, {"poses": poses_to_tpose(np.where(solved[:, None], solve.poses, np.nan), solve.model, betas),
+                            "trans": np.where(solved[:, None], solve.trans, np.nan), "mocap_framerate": np.float64(rate),
+                            "rest_pose": np.str_("tpose"), "body_model": np.str_(solve.model.name)})
+            info.update(rest_pose="tpose")
+            text_out = (f"wrote {out}: {solve.n} frames @ {rate:g} Hz, poses as rotations of a T-pose body (SMPL's rest)"
+                        + (f" ({info['unsolved_frames']} unsolved frames are NaN)" if info["unsolved_frames"] else ""))
+        elif kind == ".bvh":
             if not np.isfinite(betas).all():
                 raise UserError(f"{args.pred}: betas hold NaN/inf")
             model = solve.model
