@@ -550,30 +550,30 @@ def rotations_from_tpose(local_rot: np.ndarray, align: np.ndarray, parents) -> n
 
 def rotations_to_tpose(local_rot: np.ndarray, align: np.ndarray, parents) -> np.ndarray:
     """The inverse of ``rotations_from_tpose``: the model's local rotations (F, 24, 3, 3) -> those
-    of a T-pose body in the same posture (M_j = A_parent R_j A_j^T)."""
-    out = local_rot.copy()
-    for j in range(1, 24):
-        out[:, j] = align[int(parents[j])] @ local_rot[:, j] @ align[j].T
+    of a T-pose body in the same posture (M_j = A_parent R_j A_j^T: the same map with A^T)."""
+    return rotations_from_tpose(local_rot, np.swapaxes(align, -1, -2), parents)
+
+
+def _realigned_poses(poses: np.ndarray, model, betas: np.ndarray, to_tpose: bool) -> np.ndarray:
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 72)
+    ok = np.isfinite(poses).all(axis=1)
+    out = np.full_like(poses, np.nan)
+    rot = axis_angle_to_matrices(poses[ok].reshape(-1, 3)).reshape(-1, 24, 3, 3)
+    realign = rotations_to_tpose if to_tpose else rotations_from_tpose
+    out[ok] = matrices_to_axis_angle(realign(rot, tpose_alignment(model, betas), [int(p) for p in model.parents])).reshape(-1, 72)
     return out
 
 
 def poses_to_tpose(poses: np.ndarray, model, betas: np.ndarray) -> np.ndarray:
     """(F, 72) axis-angle poses of ``model`` -> the same posture as rotations of a T-pose body
     (SMPL's rest: what AMASS tools expect).  NaN frames stay NaN."""
-    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 72)
-    ok = np.isfinite(poses).all(axis=1)
-    out = np.full_like(poses, np.nan)
-    rot = axis_angle_to_matrices(poses[ok].reshape(-1, 3)).reshape(-1, 24, 3, 3)
-    rot = rotations_to_tpose(rot, tpose_alignment(model, betas), [int(p) for p in model.parents])
-    out[ok] = matrices_to_axis_angle(rot).reshape(-1, 72)
-    return out
+    return _realigned_poses(poses, model, betas, to_tpose=True)
 
 
 def poses_from_tpose(poses: np.ndarray, model, betas: np.ndarray) -> np.ndarray:
-    """(F, 72) axis-angle poses of a T-pose body (AMASS, the procedural curves) -> ``model``'s."""
-    rot = axis_angle_to_matrices(np.asarray(poses, dtype=np.float64).reshape(-1, 3)).reshape(-1, 24, 3, 3)
-    rot = rotations_from_tpose(rot, tpose_alignment(model, betas), [int(p) for p in model.parents])
-    return matrices_to_axis_angle(rot).reshape(-1, 72)
+    """(F, 72) axis-angle poses of a T-pose body (AMASS, the procedural curves) -> ``model``'s.
+    NaN frames stay NaN."""
+    return _realigned_poses(poses, model, betas, to_tpose=False)
 
 
 def assemble_world_poses(curves: ProceduralCurves, up_axis: str = "+z") -> np.ndarray:

@@ -345,7 +345,7 @@ def run_bench(args) -> dict:
             bar.update(1)
     bar.close()
 
-    rows = [m for m in methods] + [row for _, row in LIVE_OUTPUT_ROWS if any(r == row for r, _ in results)]
+    rows = list(methods) + [row for _, row in LIVE_OUTPUT_ROWS if any(r == row for r, _ in results)]
     runs = []
     for table, scen, cfg in jobs:
         key = session_key(cfg)
