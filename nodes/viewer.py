@@ -1,6 +1,8 @@
 """viewer: latest-only look at the graph -- a PNG of the newest skeleton + markers and/or a status line.
 
-Both inputs use the ``latest`` queue policy: a slow viewer skips frames
+With a namer in the graph (``label:=true``) the markers are drawn from ``markers/named`` with their
+names beside them (the namer's frames are the ones the solver solved, so their slots are the body's).
+Every input uses the ``latest`` queue policy: a slow viewer skips frames
 (counted as superseded) and never slows the graph down. Drawing is an
 orthographic front view: horizontal = the first non-vertical world axis,
 vertical = the capture's up axis.
@@ -48,6 +50,7 @@ class Viewer(Node):
     SUBSCRIBES = {
         "solved": Port("body/solved", types=("SolvedFrame",), policy=LATEST, optional=True),
         "markers": Port("markers/raw", types=("MarkerFrame",), policy=LATEST, optional=True),
+        "named": Port("markers/named", types=("MarkerFrame",), policy=LATEST, optional=True),
     }
 
     def setup(self) -> None:
@@ -60,7 +63,9 @@ class Viewer(Node):
         self.frames_drawn = 0
         self._estimate_at = -1e9
         self._last_status, self._last_print = "", -1e9
-        self._recent: OrderedDict = OrderedDict()  # frame_index -> MarkerFrame (the ones not skipped)
+        # frame_index -> MarkerFrame (the ones not skipped), of markers/raw and of markers/named
+        self._recent: OrderedDict = OrderedDict()
+        self._named: OrderedDict = OrderedDict()
 
     def on_solved(self, msg, env) -> None:
         if msg.kind == "revised":
@@ -75,16 +80,26 @@ class Viewer(Node):
 
     def on_markers(self, msg, env) -> None:
         self.markers = msg
-        self._recent[msg.frame_index] = msg
-        while len(self._recent) > 256:
-            self._recent.popitem(last=False)
+        self._keep(self._recent, msg)
         self.latency_ms["markers"] = (time.monotonic_ns() - env.publish_ns) / 1e6
 
+    def on_named(self, msg, env) -> None:
+        self._keep(self._named, msg)
+
+    @staticmethod
+    def _keep(recent: OrderedDict, msg, size: int = 256) -> None:
+        recent[msg.frame_index] = msg
+        while len(recent) > size:
+            recent.popitem(last=False)
+
     def drawn_markers(self):
-        """The markers of the drawn solved frame when the viewer kept them, else the newest: a body
-        drawn over another frame's markers looks off by however far the subject moved between them."""
-        if self.solved is not None and self.solved.frame_index in self._recent:
-            return self._recent[self.solved.frame_index]
+        """The markers of the drawn solved frame when the viewer kept them (named ones first), else
+        the newest: a body drawn over another frame's markers looks off by however far the subject
+        moved between them."""
+        if self.solved is not None:
+            for recent in (self._named, self._recent):
+                if self.solved.frame_index in recent:
+                    return recent[self.solved.frame_index]
         return self.markers
 
     def on_timer(self) -> None:
@@ -131,8 +146,12 @@ class Viewer(Node):
                 return int(n / 2 + q[0]), int(n / 2 - q[1])
 
             if markers is not None:
-                for p in pts[0]:
-                    cv2.circle(img, px(p), 3, (40, 40, 220), -1)
+                names = [n for n, seen in zip(markers.labels, markers.visible) if seen] if markers.labels else []
+                for k, p in enumerate(pts[0]):
+                    if np.isfinite(p).all():
+                        cv2.circle(img, px(p), 3, (40, 40, 220), -1)
+                        if k < len(names) and names[k]:
+                            cv2.putText(img, names[k], (px(p)[0] + 4, px(p)[1] - 3), cv2.FONT_HERSHEY_SIMPLEX, 0.3, (160, 60, 20), 1)
             if self.solved is not None:
                 j = pts[-1]
                 for child, parent in enumerate(self.parents):

@@ -602,3 +602,17 @@ def test_viewer_draws_skeleton_and_markers(tmp_path):
     v._estimate_at -= 2.0  # the estimates stopped (the take's end): refined frames are the newest news
     v.on_solved(dataclasses.replace(live, kind="refined", frame_index=7), env)
     assert v.solved.frame_index == 7 and v.drawn_markers().frame_index == 3  # frame 7's markers were never seen
+    # with a namer in the graph: the solved frame's named markers, drawn with their names
+    def label_pixels(path):
+        im = cv2.imread(str(path))
+        return int(((im[:, :, 0] > 120) & (im[:, :, 1] < 100) & (im[:, :, 2] < 60)).sum())
+
+    v.draw(str(tmp_path / "unnamed.png"))
+    assert label_pixels(tmp_path / "unnamed.png") == 0
+    names = ["LASI", "RASI", "", "LKNE", "RKNE"]
+    visible = np.array([True, True, True, False, True])
+    named = MarkerFrame(stamp_ns=7, frame_index=7, positions=joints[:5] + 0.02, visible=visible, labels=names)
+    v.on_named(named, env)
+    assert v.drawn_markers() is named
+    v.draw(str(tmp_path / "named.png"))
+    assert label_pixels(tmp_path / "named.png") > 10  # three names (the hidden marker and the unnamed slot: none)
