@@ -1,11 +1,9 @@
 """viewer: latest-only look at the graph -- a PNG of the newest skeleton + markers and/or a status line.
 
-With a namer in the graph (``label:=true``) the markers are drawn from ``markers/named`` with their
-names beside them (the namer's frames are the ones the solver solved, so their slots are the body's).
-Every input uses the ``latest`` queue policy: a slow viewer skips frames
-(counted as superseded) and never slows the graph down. Drawing is an
-orthographic front view: horizontal = the first non-vertical world axis,
-vertical = the capture's up axis.
+Every input uses the ``latest`` queue policy: a slow viewer skips frames (counted as superseded) and
+never slows the graph down. Drawing is an orthographic front view: horizontal = the first
+non-vertical world axis, vertical = the capture's up axis.  With a namer in the graph the markers are
+drawn from ``markers/named`` (the frames the solver solved: their slots are the body's), named.
 """
 
 from __future__ import annotations
@@ -64,8 +62,7 @@ class Viewer(Node):
         self._estimate_at = -1e9
         self._last_status, self._last_print = "", -1e9
         # frame_index -> MarkerFrame (the ones not skipped), of markers/raw and of markers/named
-        self._recent: OrderedDict = OrderedDict()
-        self._named: OrderedDict = OrderedDict()
+        self._recent, self._named = OrderedDict(), OrderedDict()
 
     def on_solved(self, msg, env) -> None:
         if msg.kind == "revised":
