@@ -146,9 +146,10 @@ class Viewer(Node):
                 names = [n for n, seen in zip(markers.labels, markers.visible) if seen] if markers.labels else []
                 for k, p in enumerate(pts[0]):
                     if np.isfinite(p).all():
-                        cv2.circle(img, px(p), 3, (40, 40, 220), -1)
+                        x, y = px(p)
+                        cv2.circle(img, (x, y), 3, (40, 40, 220), -1)
                         if k < len(names) and names[k]:
-                            cv2.putText(img, names[k], (px(p)[0] + 4, px(p)[1] - 3), cv2.FONT_HERSHEY_SIMPLEX, 0.3, (160, 60, 20), 1)
+                            cv2.putText(img, names[k], (x + 4, y - 3), cv2.FONT_HERSHEY_SIMPLEX, 0.3, (160, 60, 20), 1)
             if self.solved is not None:
                 j = pts[-1]
                 for child, parent in enumerate(self.parents):

@@ -615,4 +615,8 @@ def test_viewer_draws_skeleton_and_markers(tmp_path):
     v.on_named(named, env)
     assert v.drawn_markers() is named
     v.draw(str(tmp_path / "named.png"))
-    assert label_pixels(tmp_path / "named.png") > 10  # three names (the hidden marker and the unnamed slot: none)
+    assert label_pixels(tmp_path / "named.png") > 10  # three names
+    # a hidden marker's name and an empty name are not drawn (the one visible slot here is unnamed)
+    v.on_named(dataclasses.replace(named, visible=np.array([False, False, True, False, False])), env)
+    v.draw(str(tmp_path / "hidden.png"))
+    assert label_pixels(tmp_path / "hidden.png") == 0
