@@ -58,9 +58,7 @@ class Viewer(Node):
         self.timer_s = self.config.period_s
         self.solved = self.markers = None
         self.latency_ms = {"solved": float("nan"), "markers": float("nan")}
-        self.frames_drawn = 0
-        self._estimate_at = -1e9
-        self._last_status, self._last_print = "", -1e9
+        self.frames_drawn, self._estimate_at, self._last_status, self._last_print = 0, -1e9, "", -1e9
         # frame_index -> MarkerFrame (the ones not skipped), of markers/raw and of markers/named
         self._recent, self._named = OrderedDict(), OrderedDict()
 
@@ -113,10 +111,12 @@ class Viewer(Node):
         m, s = self.markers, self.solved
         if m is not None:
             parts.append(f"markers #{m.frame_index} {int(m.visible.sum())}/{len(m.visible)} seen, {self.latency_ms['markers']:.1f} ms")
+        if self._named:  # the namer's newest frame: how many of its seen markers carry a name
+            nm = next(reversed(self._named.values()))
+            parts.append(f"named {sum(bool(name) and seen for name, seen in zip(nm.labels, nm.visible))}")
         if s is not None:
             parts.append(f"solved #{s.frame_index} {s.kind} residual {s.residual_m * 1000:.1f} mm, {self.latency_ms['solved']:.1f} ms")
-        sup = sum(st.superseded for st in self._sub.stats.values()) if self._sub else 0
-        parts.append(f"skipped {sup}")
+        parts.append(f"skipped {sum(st.superseded for st in self._sub.stats.values()) if self._sub else 0}")
         return " | ".join(parts)
 
     def draw(self, path: str) -> None:
@@ -124,24 +124,16 @@ class Viewer(Node):
 
         markers = self.drawn_markers()
         up = markers.up_axis if markers is not None else "+z"
-        pts = []
-        if markers is not None:
-            pts.append(project(np.asarray(markers.positions[markers.visible], np.float64), up))
-        if self.solved is not None:
-            pts.append(project(np.asarray(self.solved.joints, np.float64), up))
+        pts = [project(np.asarray(markers.positions[markers.visible], np.float64), up)] if markers is not None else []
+        pts += [project(np.asarray(self.solved.joints, np.float64), up)] if self.solved is not None else []
         allp = np.concatenate(pts) if pts else np.zeros((0, 2))
         allp = allp[np.isfinite(allp).all(axis=1)]
         n = self.config.size
         img = np.full((n, n, 3), 255, np.uint8)
         if len(allp):
             lo, hi = allp.min(axis=0), allp.max(axis=0)
-            scale = 0.9 * n / max(float((hi - lo).max()), 0.5)
-            centre = (lo + hi) / 2
-
-            def px(p):
-                q = (p - centre) * scale
-                return int(n / 2 + q[0]), int(n / 2 - q[1])
-
+            centre, scale = (lo + hi) / 2, 0.9 * n / max(float((hi - lo).max()), 0.5)
+            px = lambda p: (int(n / 2 + (p[0] - centre[0]) * scale), int(n / 2 - (p[1] - centre[1]) * scale))  # noqa: E731
             if markers is not None:
                 names = [n for n, seen in zip(markers.labels, markers.visible) if seen] if markers.labels else []
                 for k, p in enumerate(pts[0]):
@@ -150,13 +142,10 @@ class Viewer(Node):
                         cv2.circle(img, (x, y), 3, (40, 40, 220), -1)
                         if k < len(names) and names[k]:
                             cv2.putText(img, names[k], (x + 4, y - 3), cv2.FONT_HERSHEY_SIMPLEX, 0.3, (160, 60, 20), 1)
-            if self.solved is not None:
-                j = pts[-1]
-                for child, parent in enumerate(self.parents):
-                    if parent >= 0:
-                        cv2.line(img, px(j[parent]), px(j[child]), (40, 140, 40), 2)
+            for child, parent in enumerate(self.parents if self.solved is not None else []):
+                if parent >= 0:
+                    cv2.line(img, px(pts[-1][parent]), px(pts[-1][child]), (40, 140, 40), 2)
         cv2.putText(img, self.status_line()[len(self.name) + 5:][:70], (5, n - 8), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1)
-        tmp = path + ".tmp.png"
-        cv2.imwrite(tmp, img)
-        os.replace(tmp, path)
+        cv2.imwrite(path + ".tmp.png", img)
+        os.replace(path + ".tmp.png", path)  # a reader never sees half a PNG
         self.frames_drawn += 1

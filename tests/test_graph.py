@@ -608,7 +608,7 @@ def test_viewer_draws_skeleton_and_markers(tmp_path):
         return int(((im[:, :, 0] > 120) & (im[:, :, 1] < 100) & (im[:, :, 2] < 60)).sum())
 
     v.draw(str(tmp_path / "unnamed.png"))
-    assert label_pixels(tmp_path / "unnamed.png") == 0
+    assert label_pixels(tmp_path / "unnamed.png") == 0 and "named" not in v.status_line()
     names = ["LASI", "RASI", "", "LKNE", "RKNE"]
     visible = np.array([True, True, True, False, True])
     named = MarkerFrame(stamp_ns=7, frame_index=7, positions=joints[:5] + 0.02, visible=visible, labels=names)
@@ -616,7 +616,8 @@ def test_viewer_draws_skeleton_and_markers(tmp_path):
     assert v.drawn_markers() is named
     v.draw(str(tmp_path / "named.png"))
     assert label_pixels(tmp_path / "named.png") > 10  # three names
+    assert "| named 3 |" in v.status_line()  # LASI, RASI, RKNE: the empty name and the hidden LKNE do not count
     # a hidden marker's name and an empty name are not drawn (the one visible slot here is unnamed)
     v.on_named(dataclasses.replace(named, visible=np.array([False, False, True, False, False])), env)
     v.draw(str(tmp_path / "hidden.png"))
-    assert label_pixels(tmp_path / "hidden.png") == 0
+    assert label_pixels(tmp_path / "hidden.png") == 0 and "| named 0 |" in v.status_line()
