@@ -135,7 +135,7 @@ class Viewer(Node):
             centre, scale = (lo + hi) / 2, 0.9 * n / max(float((hi - lo).max()), 0.5)
             px = lambda p: (int(n / 2 + (p[0] - centre[0]) * scale), int(n / 2 - (p[1] - centre[1]) * scale))  # noqa: E731
             if markers is not None:
-                names = [n for n, seen in zip(markers.labels, markers.visible) if seen] if markers.labels else []
+                names = [name for name, seen in zip(markers.labels, markers.visible) if seen] if markers.labels else []
                 for k, p in enumerate(pts[0]):
                     if np.isfinite(p).all():
                         x, y = px(p)
