@@ -73,33 +73,25 @@ class Solver(Node):
 
         from uuomocap.solver_core.body_model import load_solver_models
         from uuomocap.solver_core.staged_solver import preload_lazy_imports
-        from uuomocap.solver_core.windowed_solver import WindowedSolverConfig
+        from uuomocap.solver_core.windowed_solver import WindowedSolverConfig, start_worker
 
         torch.set_num_threads(self.config.threads)
         preload_lazy_imports()  # at start-up: the solver is built on the first marker frame
         c = self.config
         self.model, self.chamfer_model = load_solver_models(c.body_model)
         self.solver_config = replace(WindowedSolverConfig(), bootstrap_s=c.bootstrap_s, lag_frames=c.lag_frames, hop_frames=c.hop_frames,
-                                     estimate_iterations=c.estimate_iterations, upgrade_in_background=c.upgrade_in_background)
-        if c.smoothness_weight is not None:
-            self.solver_config = replace(self.solver_config, smoothness_weight=c.smoothness_weight)
-        if c.bootstrap_starts == 1:
-            self.solver_config = replace(self.solver_config, bootstrap_alternatives=())
-        self.solver = None
-        self.rate_hz = 0.0
+                                     estimate_iterations=c.estimate_iterations, upgrade_in_background=c.upgrade_in_background,
+                                     **({} if c.smoothness_weight is None else {"smoothness_weight": c.smoothness_weight}),
+                                     **({"bootstrap_alternatives": ()} if c.bootstrap_starts == 1 else {}))
+        self.solver, self.rate_hz, self._early_priors = None, 0.0, []
         # the worker process (second bootstrap start, background upgrades) starts now and setup waits
         # for it, as `solve --method uuo-window` and `bench speed` do: a replay starts at once, and in
         # lockstep its first 3 s arrive in under a second - the worker's imports (~3 s) then sat inside
         # the bootstrap (make demo: 12.0 s against 8.0 s).  A live solver is up before the take.
-        self.worker = None
-        sc = self.solver_config
-        if sc.worker_process and (sc.bootstrap_alternatives or sc.upgrade_in_background):
-            from uuomocap.solver_core.solve_worker import StagedSolveWorker
-
-            t0 = time.monotonic()
-            self.worker = StagedSolveWorker(self.model, self.chamfer_model)
-            if not self.worker.ready(self.WORKER_START_TIMEOUT_S):  # late or broken: the solver copes (threads)
-                self.log.warning("solve worker not ready after %.1f s; the bootstrap may wait for it", time.monotonic() - t0)
+        t0 = time.monotonic()
+        self.worker = start_worker(self.model, self.chamfer_model, self.solver_config)
+        if self.worker is not None and not self.worker.ready(self.WORKER_START_TIMEOUT_S):  # late or broken: the solver copes (threads)
+            self.log.warning("solve worker not ready after %.1f s; the bootstrap may wait for it", time.monotonic() - t0)
         self.log.info("solver: %s, bootstrap %.1fs, lag %d frames", c.body_model, c.bootstrap_s, c.lag_frames)
 
     def _make_solver(self, msg) -> None:
@@ -109,14 +101,14 @@ class Solver(Node):
         self.solver = WindowedSolver(self.model, self.solver_config, msg.up_axis, self.rate_hz or None, self.chamfer_model,
                                      worker=self.worker)
         self.worker = None  # the solver owns it now
-        for row in getattr(self, "_early_priors", []):
+        for row in self._early_priors:
             self.solver.add_prior(*row)
         self._early_priors = []
 
     def on_prior(self, msg, env) -> None:
         row = (msg.stamp_ns, msg.global_orient, msg.body_pose, msg.betas, msg.valid, msg.camera_frame, msg.confidence)
         if self.solver is None:
-            self._early_priors = (getattr(self, "_early_priors", []) + [row])[-512:]
+            self._early_priors = (self._early_priors + [row])[-512:]
         else:
             self.solver.add_prior(*row)
 
@@ -136,10 +128,11 @@ class Solver(Node):
                                  iterations=1 if behind else None)
         self._publish(results)  # the estimate goes out before the smoothing pass runs
         if s.locked and not was_locked:
-            fits = s.stats.get("bootstrap_start_fits_mm") or []
-            starts = ", starts' marker fit " + " / ".join("failed" if f is None else f"{f:.2f}" for f in fits) + \
-                f" mm, #{s.stats['bootstrap_start_chosen'] + 1} locked" if fits else ""
-            self.log.info("bootstrap done in %.1f s (%d frames estimated%s)", s.stats["bootstrap_seconds"][-1], len(results), starts)
+            from uuomocap.solver_core.windowed_solver import bootstrap_starts_summary
+
+            starts = bootstrap_starts_summary(s.stats)
+            self.log.info("bootstrap done in %.1f s (%d frames estimated%s)", s.stats["bootstrap_seconds"][-1], len(results),
+                          f", starts' marker fit {starts}" if starts else "")
         c = self.config
         if not self.input_waiting("markers"):
             self._publish(s.refine_ready())  # on time: every due smoothing pass
@@ -161,14 +154,13 @@ class Solver(Node):
             self._finish_take()
 
     def _finish_take(self) -> None:
+        from uuomocap.solver_core.windowed_solver import take_end_summary
+
         results = self.solver.flush()
         self._publish(results)
-        st = self.solver.stats
-        if results and ("upgrade_at_end_s" in st or "revise_at_end_s" in st):  # why the last frames came late
-            self.log.info("take end: lock upgrade %s, %d markers re-assigned, %d frames revised in %.1f s",
-                          "%.1f s" % st["upgrade_at_end_s"] if "upgrade_at_end_s" in st else "skipped",
-                          st.get("reassigned_at_end", 0), sum(r.kind == "revised" for r in results),
-                          st.get("upgrade_at_end_s", 0.0) + st.get("revise_at_end_s", 0.0))
+        summary = take_end_summary(self.solver.stats, sum(r.kind == "revised" for r in results))
+        if results and summary:  # why the last frames came late
+            self.log.info("take end: %s", summary)
 
     def teardown(self) -> None:
         if self.solver is not None:
@@ -176,22 +168,10 @@ class Solver(Node):
         if self.worker is not None:
             self.worker.close()
 
-    def _labels(self) -> tuple:
-        """(faces, bary, parts) of the current correspondence; the part names (~0.4 ms) are only
-        recomputed when the correspondence changed."""
-        s = self.solver
-        if not s.locked:
-            return None, None, []
-        cached = getattr(self, "_labels_cache", None)
-        if cached is None or not (np.array_equal(cached[0], s.face_ids) and np.array_equal(cached[1], s.bary.astype(np.float32))):
-            labels = s.labels
-            cached = self._labels_cache = (labels.face_ids.astype(np.int32), labels.bary.astype(np.float32), list(labels.parts))
-        return cached
-
     def _publish(self, results) -> None:
         if not results:
             return
-        faces, bary, parts = self._labels()
+        faces, bary, parts = self.solver.label_arrays()
         for r in results:
             if r.kind == "estimate" and not self.config.publish_estimates:
                 continue

@@ -701,6 +701,43 @@ def label_markers(model, chamfer_model, markers: np.ndarray, visible: np.ndarray
     return att, marker_part_names(model, att), diag
 
 
+def needs_worker(config: WindowedSolverConfig) -> bool:
+    """Whether a solver under this config solves in a worker process (second bootstrap start,
+    background lock upgrades)."""
+    return bool(config.worker_process and (config.bootstrap_alternatives or config.upgrade_in_background))
+
+
+def start_worker(model, chamfer_model, config: WindowedSolverConfig):
+    """The worker process a ``WindowedSolver`` under this config needs (None when it needs none),
+    started now: a driver starts it before the take (its imports take ~3-6 s on 2 cores) and hands
+    it to the solver as ``worker=``."""
+    if not needs_worker(config):
+        return None
+    from uuomocap.solver_core.solve_worker import StagedSolveWorker
+
+    return StagedSolveWorker(model, chamfer_model or model)
+
+
+def bootstrap_starts_summary(stats: dict) -> str:
+    """'1.23 / failed mm, #1 locked': each bootstrap start's Stage-5 marker fit and the one locked
+    ('' before a bootstrap with starts)."""
+    fits = stats.get("bootstrap_start_fits_mm") or []
+    if not fits:
+        return ""
+    return (" / ".join("failed" if f is None else f"{f:.2f}" for f in fits)
+            + f" mm, #{(stats.get('bootstrap_start_chosen') or 0) + 1} locked")
+
+
+def take_end_summary(stats: dict, revised_frames: int) -> str:
+    """What the take's end did (lock upgrade, re-assigned markers, revised frames), or '' when it
+    did neither: the reason a take's last frames came late."""
+    if "upgrade_at_end_s" not in stats and "revise_at_end_s" not in stats:
+        return ""
+    upgrade = "%.1f s" % stats["upgrade_at_end_s"] if "upgrade_at_end_s" in stats else "skipped"
+    return (f"lock upgrade {upgrade}, {stats.get('reassigned_at_end', 0)} markers re-assigned, {revised_frames} frames revised "
+            f"in {stats.get('upgrade_at_end_s', 0.0) + stats.get('revise_at_end_s', 0.0):.1f} s")
+
+
 class WindowedSolver:
     """Streaming solver: ``add_prior`` / ``add_markers`` in capture order, ``flush`` at the end.
 
@@ -748,10 +785,8 @@ class WindowedSolver:
         self._bone_operator = bone_vector_operator(self._parents)
         self._levels = [(ids.numpy(), par.numpy()) for ids, par in lbs.kinematic_levels(model.parents)]
         self._worker = None
-        if config.worker_process and (config.bootstrap_alternatives or config.upgrade_in_background):
-            from uuomocap.solver_core.solve_worker import StagedSolveWorker
-
-            self._worker = worker or StagedSolveWorker(model, self.chamfer_model)  # its imports run beside the first frames
+        if needs_worker(config):
+            self._worker = worker or start_worker(model, self.chamfer_model, config)  # its imports run beside the first frames
             weakref.finalize(self, self._worker.close)
         elif worker is not None:
             worker.close()
@@ -784,6 +819,7 @@ class WindowedSolver:
         self.allowed_ids = None
         self.part_joints: tuple[int, ...] | None = None  # the locked part's joints (None: full body)
         self.labels_version = 0
+        self._label_arrays = None  # label_arrays()'s cache
         self._boot: deque | None = None  # frames collected for a (re-)bootstrap
         self._pending: deque = deque()  # estimated, not yet final (bounded by lag + hop)
         self._context: deque = deque(maxlen=max(c.context_frames, 2))
@@ -1057,6 +1093,18 @@ class WindowedSolver:
         att = self._attachment()
         return MarkerLabelState(self.labels_version, self.face_ids.copy(), self.bary.copy(),
                                 marker_part_names(self.model, att), self.config.ik.marker_offset_m)
+
+    def label_arrays(self) -> tuple[np.ndarray | None, np.ndarray | None, list[str]]:
+        """(faces (M,) int32, bary (M, 3) float32, part names) of the current correspondence for a
+        publisher, (None, None, []) before the lock; the part names (~0.4 ms) are only recomputed
+        when the correspondence changed."""
+        if not self.locked:
+            return None, None, []
+        cached = self._label_arrays
+        if cached is None or not (np.array_equal(cached[0], self.face_ids) and np.array_equal(cached[1], self.bary.astype(np.float32))):
+            labels = self.labels
+            cached = self._label_arrays = (labels.face_ids.astype(np.int32), labels.bary.astype(np.float32), list(labels.parts))
+        return cached
 
     def buffer_sizes(self) -> dict[str, int]:
         """Lengths of every internal buffer (the memory-bound test watches these)."""

@@ -287,9 +287,14 @@ def test_the_take_end_reassigns_the_markers_on_the_whole_ring(streamed):
     s.config = replace(s.config, revise_at_end=True)
     ring = [f.index for f in s._refined_ring]
     wrong_mm, version = _attach_error_mm(s, gt, streamed["model"]), s.labels_version
+    published = s.label_arrays()  # what the solver node sends with each frame: cached while the points stay
+    assert s.label_arrays() is published and published[0].dtype == np.int32 and np.array_equal(published[0], s.face_ids)
     out = s.flush()
     fixed_mm = _attach_error_mm(s, gt, streamed["model"])
     assert s.stats["reassigned_at_end"] >= 6 and s.labels_version > version
+    republished = s.label_arrays()  # the re-assigned points go out from the next frame on
+    assert np.array_equal(republished[0], s.face_ids) and not np.array_equal(republished[0], published[0])
+    assert len(republished[2]) == len(s.face_ids)
     # the ring comes out once, revised under the repaired points
     assert [r.frame_index for r in out] == ring and all(r.labels_version == s.labels_version for r in out)
     kept = _mislocked_clone(streamed)
@@ -929,7 +934,7 @@ def test_solver_node_uses_the_windowed_solvers_defaults_unless_configured():
         node = Solver("solver", Solver.parse_config({**params, "bootstrap_starts": 1}, "solver"), Runtime(endpoints=None))
         node.setup()  # one bootstrap start: no worker process
         try:
-            assert node.worker is None
+            assert node.worker is None and node.solver_config.bootstrap_alternatives == ()
             assert (node.solver_config.smoothness_weight, node.solver_config.estimate_iterations) == expected
             assert node.solver_config.smoothness_target == WindowedSolverConfig().smoothness_target
         finally:
@@ -998,3 +1003,22 @@ def test_a_lock_made_before_any_video_prior_rebootstraps_once_priors_come(tmp_pa
           f"(with the prior from the start {normal:.1f} mm)")
     # session 39's generator (arms at the sides, as the neutral start has them): 41.3 -> 18.9 mm, on time 21.6
     assert after < 0.6 * before and after < normal + 3.0
+
+
+def test_the_logged_summaries_say_what_the_stats_hold():
+    """The solver node's 'bootstrap done' and 'take end' log lines (what `bench live` parses and a
+    technician reads) and whether a config needs the worker process."""
+    from uuomocap.solver_core.windowed_solver import bootstrap_starts_summary, needs_worker, start_worker, take_end_summary
+
+    assert bootstrap_starts_summary({}) == ""
+    assert bootstrap_starts_summary({"bootstrap_start_fits_mm": [1.234, None], "bootstrap_start_chosen": 0}) == "1.23 / failed mm, #1 locked"
+    assert bootstrap_starts_summary({"bootstrap_start_fits_mm": [2.0, 1.5], "bootstrap_start_chosen": 1}) == "2.00 / 1.50 mm, #2 locked"
+    assert take_end_summary({"reassigned": 4}, 0) == ""
+    assert take_end_summary({"upgrade_at_end_s": 13.3, "revise_at_end_s": 2.2, "reassigned_at_end": 3}, 480) == \
+        "lock upgrade 13.3 s, 3 markers re-assigned, 480 frames revised in 15.5 s"
+    assert take_end_summary({"revise_at_end_s": 1.04}, 5) == "lock upgrade skipped, 0 markers re-assigned, 5 frames revised in 1.0 s"
+    default = WindowedSolverConfig()
+    assert needs_worker(default) and needs_worker(replace(default, bootstrap_alternatives=(), upgrade_in_background=True))
+    assert not needs_worker(replace(default, worker_process=False))
+    alone = replace(default, bootstrap_alternatives=(), upgrade_in_background=False)
+    assert not needs_worker(alone) and start_worker(None, None, alone) is None

@@ -225,10 +225,10 @@ def _summary(info: dict, method: str) -> str:
         lines.append(f"mean marker fit: {info['stage5_marker_fit_mm']:.1f} mm")
     secs = info.get("stage_seconds") or {}
     if method == "uuo-window":
-        fits = info.get("bootstrap_start_fits_mm") or []
-        lines.append(f"bootstrap {secs.get('bootstrap', float('nan')):.1f} s (starts' marker fit "
-                     + " / ".join("failed" if f is None else f"{f:.2f} mm" for f in fits)
-                     + f", #{(info.get('bootstrap_start_chosen') or 0) + 1} locked); {info.get('rebootstraps', 0)} re-bootstraps, "
+        from uuomocap.solver_core.windowed_solver import bootstrap_starts_summary
+
+        lines.append(f"bootstrap {secs.get('bootstrap', float('nan')):.1f} s (starts' marker fit {bootstrap_starts_summary(info)}); "
+                     f"{info.get('rebootstraps', 0)} re-bootstraps, "
                      f"{info.get('reassigned', 0)} markers re-assigned; lock upgrades ran inline (a live take runs them in the background)")
     elif secs:
         lines.append("seconds per stage: " + ", ".join(f"{k} {v:.2f}" for k, v in secs.items()) + f" (total {sum(secs.values()):.2f})")
