@@ -1022,3 +1022,10 @@ def test_the_logged_summaries_say_what_the_stats_hold():
     assert not needs_worker(replace(default, worker_process=False))
     alone = replace(default, bootstrap_alternatives=(), upgrade_in_background=False)
     assert not needs_worker(alone) and start_worker(None, None, alone) is None
+    # `solve --method uuo-window` prints the same starts summary, and none when no start reported
+    from uuomocap.commands.solve import _summary
+
+    info = {"out": "x.npz", "seconds": 1.0, "frames": 240, "markers": 30, "threads": 1, "stage_seconds": {"bootstrap": 7.5}}
+    assert "bootstrap 7.5 s (starts' marker fit 3.26 / 3.02 mm, #2 locked);" in _summary(
+        {**info, "bootstrap_start_fits_mm": [3.26, 3.02], "bootstrap_start_chosen": 1}, "uuo-window")
+    assert "bootstrap 7.5 s; 0 re-bootstraps" in _summary(info, "uuo-window")

@@ -227,7 +227,8 @@ def _summary(info: dict, method: str) -> str:
     if method == "uuo-window":
         from uuomocap.solver_core.windowed_solver import bootstrap_starts_summary
 
-        lines.append(f"bootstrap {secs.get('bootstrap', float('nan')):.1f} s (starts' marker fit {bootstrap_starts_summary(info)}); "
+        starts = bootstrap_starts_summary(info)
+        lines.append(f"bootstrap {secs.get('bootstrap', float('nan')):.1f} s" + (f" (starts' marker fit {starts})" if starts else "") + "; "
                      f"{info.get('rebootstraps', 0)} re-bootstraps, "
                      f"{info.get('reassigned', 0)} markers re-assigned; lock upgrades ran inline (a live take runs them in the background)")
     elif secs:
