@@ -68,9 +68,11 @@ class VideoPrior(Node):
         return ({"sync": Port(config.sync_to, types=("MarkerFrame",), optional=True)} if config.sync_to else {}), dict(cls.PUBLISHES)
 
     def setup(self) -> None:
+        import torch
+
         from uuomocap.model_fetch import ensure_pose_models
         from uuomocap.protocol.video import session_video_settings, video_source
-        from uuomocap.solver_core.pose_estimators import BlazePoseEstimator, OnnxHmrEstimator
+        from uuomocap.solver_core.video_prior import StreamingVideoPrior
 
         c = self.config
         self.video = video_source(c.video, rate_hz=c.rate_hz)
@@ -80,28 +82,13 @@ class VideoPrior(Node):
             # a session's file only: a camera index or URL has no session.yaml beside it
             offset = session_video_settings(session_yaml)["clock_offset_s"] if not self.video.live and session_yaml.is_file() else 0.0
         self.offset_ns = int(round(offset * 1e9))
+        torch.set_num_threads(1)  # the landmark fit's small batches; the cores belong to the graph
         models = ensure_pose_models(log=self.log.info)
-        tracker = BlazePoseEstimator(models.detector, models.landmark)
-        self.fitter = None
-        if c.estimator.startswith("onnx-hmr:"):
-            self.estimator = OnnxHmrEstimator(c.estimator.split(":", 1)[1], tracker)
-            self.body_model = "smpl"
-        else:
-            import torch
-
-            from uuomocap.solver_core.body_model import load_body_model
-            from uuomocap.solver_core.landmark_fit import StreamingLandmarkFitter
-
-            torch.set_num_threads(1)
-            self.estimator = tracker
-            self.fitter = StreamingLandmarkFitter(load_body_model(c.body_model), batch_frames=c.batch_frames)
-            self.body_model = c.body_model
+        self.estimator = StreamingVideoPrior(c.estimator, models.detector, models.landmark, c.body_model, c.batch_frames)
         self.pacer = Pacer(c.speed) if c.speed > 0 and not (self.video.live or c.lockstep or c.sync_to) else None
         self.bridge = ClockBridge(c.sync_window_s) if c.sync_to else None
-        self.frames: dict[int, tuple[int, object]] = {}  # index -> (video stamp, estimator result)
-        self.frames_capture: dict[int, int] = {}  # index -> capture-clock stamp (sync_to)
-        self.last = (np.zeros(3), np.zeros((23, 3)), np.zeros(10))
-        self.count_frames, self.last_seq, self.done = 0, -1, False
+        self.frames: dict[int, tuple[int, int]] = {}  # index -> (video stamp, capture-clock stamp) until its prior is out
+        self.count_frames, self.last_seq = 0, -1
         if c.ack_from:
             self.track_acks(self.ack_sources(c))
         self.log.info("video prior: %s at %.3f Hz, estimator %s, clock offset %.3f s%s", self.video.name,
@@ -116,8 +103,7 @@ class VideoPrior(Node):
             return self.sleep_until(time.monotonic_ns() + 20_000_000)  # a file waits for the marker clock; a camera cannot
         frame = None if (c.max_frames and self.count_frames >= c.max_frames) else self.video.read()
         if frame is None:
-            if self.fitter is not None:
-                self._emit(self.fitter.flush())
+            self._emit(self.estimator.flush())
             self.end_stream("prior")
             self.log.info("video prior finished: %d frames", self.count_frames)
             return False
@@ -126,7 +112,7 @@ class VideoPrior(Node):
             self.wait_ready()  # the clock starts once the subscribers are ready (no start-up burst)
             if not self.sleep_until(self.pacer.due_ns(frame.stamp_ns)):
                 return False
-        stamp = frame.stamp_ns
+        stamp = capture = frame.stamp_ns
         if self.bridge is not None:  # the frame's time is its arrival here, mapped onto the markers' clock
             if not self.bridge.ready:
                 self.count("before_marker_clock")  # no marker frame yet: no clock to put it on
@@ -139,42 +125,23 @@ class VideoPrior(Node):
                     return not self.stopping
                 if not self.sleep_until(stamp):
                     return False
-            self.frames_capture[frame.index] = capture
-        result = self.estimator.process(frame.rgb())
+        self.frames[frame.index] = (stamp, capture)
+        finished = self.estimator.push(frame.index, frame.rgb())
         self.counters["camera_dropped"] = self.video.dropped  # frames a live source sent while the estimator was busy
         self.count("frames")
-        self.count("person" if result is not None else "no_person")
-        self.frames[frame.index] = (stamp, result)
-        if self.fitter is None:
-            self._emit([(frame.index, None if result is None else
-                         (result.global_orient, result.body_pose, result.betas, 0.0))])
-        else:
-            self._emit(self.fitter.push(frame.index, None if result is None else result.world,
-                                        None if result is None else result.visibility))
+        self.count("person" if self.estimator.person_found else "no_person")
+        self._emit(finished)
         return not self.stopping
 
     def _emit(self, finished) -> None:
-        from uuomocap.solver_core.video_prior import matrices_to_axis_angle, rotations_to_matrices
-
         c = self.config
-        for index, fit in finished:
-            stamp, result = self.frames.pop(index)
-            capture = self.frames_capture.pop(index) if self.bridge is not None else stamp
-            if fit is not None:
-                orient, pose, betas, _residual = fit
-                if self.fitter is None:  # HMR output: any rotation layout -> axis-angle
-                    orient = matrices_to_axis_angle(rotations_to_matrices(np.asarray(orient).reshape(1, -1), 1, "global_orient"))[0, 0]
-                    pose = matrices_to_axis_angle(rotations_to_matrices(np.asarray(pose).reshape(1, -1), 23, "body_pose"))[0]
-                self.last = (np.asarray(orient), np.asarray(pose).reshape(23, 3), np.asarray(betas).reshape(-1))
-            score = 0.0 if result is None else float(getattr(result, "pose_score", getattr(result, "score", 1.0)))
-            world = getattr(result, "world", None)
+        for f in finished:
+            stamp, capture = self.frames.pop(f.key)
             msg = BodyPrior(
-                stamp_ns=capture + self.offset_ns, video_stamp_ns=stamp, frame_index=index,
-                global_orient=self.last[0].astype(np.float32), body_pose=self.last[1].astype(np.float32),
-                betas=self.last[2].astype(np.float32),
-                keypoints3d=None if world is None else np.asarray(world, np.float32),
-                camera_frame=True, confidence=score if fit is not None else 0.0, valid=fit is not None,
-                body_model=self.body_model)
+                stamp_ns=capture + self.offset_ns, video_stamp_ns=stamp, frame_index=f.key,
+                global_orient=f.global_orient.astype(np.float32), body_pose=f.body_pose.astype(np.float32),
+                betas=f.betas.astype(np.float32), keypoints3d=f.keypoints3d, camera_frame=True,
+                confidence=f.confidence, valid=f.valid, body_model=self.estimator.body_model)
             if c.lockstep:
                 self.wait_for_credit("prior", self.last_seq + 1, msg.stamp_ns, c.ack_from, c.window, c.ack_timeout_s)
             if self.stopping:

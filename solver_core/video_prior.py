@@ -152,3 +152,78 @@ def prior_from_landmarks(results: list[LandmarkResult | None], stamps_ns, rate_h
         global_orient=fit.global_orient[near], body_pose=fit.body_pose[near],
         betas=np.broadcast_to(fit.betas, (n, len(fit.betas))).copy(), valid=valid, confidence=confidence,
         body_model=body_model, estimator="blazepose", keypoints3d=world[near], info=info)
+
+
+@dataclass(frozen=True)
+class PriorFrame:
+    """One video frame's body prior, as ``StreamingVideoPrior`` hands it out."""
+
+    key: object  # the caller's frame key (the video node: the frame index)
+    global_orient: np.ndarray  # (3,) axis-angle, OpenCV camera frame
+    body_pose: np.ndarray  # (23, 3) axis-angle
+    betas: np.ndarray  # (B,)
+    valid: bool  # False: no person in this frame; the parameters are the last fitted frame's (zeros before any)
+    confidence: float  # the person / pose score of the frame, 0 when not valid
+    keypoints3d: np.ndarray | None  # (33, 3) BlazePose world landmarks (metres, camera axes), None without them
+
+
+class StreamingVideoPrior:
+    """The video body prior for a live stream: RGB frames in one at a time, finished frames out in order.
+
+    ``estimator`` 'blazepose': BlazePose GHUM 3D, then the body model fitted to its 3D landmarks
+    ``batch_frames`` at a time (``StreamingLandmarkFitter``; latency batch_frames / rate).
+    'onnx-hmr:MODEL.onnx': a user's HMR-class network on BlazePose's person box, one frame per call,
+    any rotation layout turned into axis-angle (the SMPL parameters ``prior_from_smpl_rotations`` takes).
+    A frame without a person holds the last fitted parameters with valid=False, so every frame is finite.
+    """
+
+    def __init__(self, estimator: str, detector_path, landmark_path, body_model: str = "open-low",
+                 batch_frames: int = 15):
+        from .pose_estimators import BlazePoseEstimator, OnnxHmrEstimator
+
+        tracker = BlazePoseEstimator(detector_path, landmark_path)
+        self.fitter = None
+        if estimator.startswith("onnx-hmr:"):
+            self.estimator, self.body_model = OnnxHmrEstimator(estimator.split(":", 1)[1], tracker), "smpl"
+        elif estimator == "blazepose":
+            from .body_model import load_body_model
+            from .landmark_fit import StreamingLandmarkFitter
+
+            self.estimator, self.body_model = tracker, body_model
+            self.fitter = StreamingLandmarkFitter(load_body_model(body_model), batch_frames=batch_frames)
+        else:
+            raise ValueError(f"estimator {estimator!r} is not 'blazepose' or 'onnx-hmr:MODEL.onnx'")
+        self.person_found = False  # in the last frame pushed
+        self._results: dict[object, object] = {}  # key -> the estimator's result, until the frame is finished
+        self._last = (np.zeros(3), np.zeros((23, 3)), np.zeros(10))
+
+    def push(self, key, image_rgb: np.ndarray) -> list[PriorFrame]:
+        """Estimate one frame (``image_rgb`` (H, W, 3) uint8); returns the frames this call finished."""
+        result = self.estimator.process(image_rgb)
+        self.person_found = result is not None
+        self._results[key] = result
+        if self.fitter is None:  # HMR output: one rotation / 23 rotations in any layout -> axis-angle
+            fit = None if result is None else (
+                matrices_to_axis_angle(rotations_to_matrices(np.asarray(result.global_orient).reshape(1, -1), 1, "global_orient"))[0, 0],
+                matrices_to_axis_angle(rotations_to_matrices(np.asarray(result.body_pose).reshape(1, -1), 23, "body_pose"))[0],
+                result.betas)
+            return self._finish([(key, fit)])
+        return self._finish(self.fitter.push(key, None if result is None else result.world,
+                                             None if result is None else result.visibility))
+
+    def flush(self) -> list[PriorFrame]:
+        """Finish every frame still waiting for its batch (end of the video)."""
+        return self._finish(self.fitter.flush()) if self.fitter is not None else []
+
+    def _finish(self, finished: list[tuple[object, tuple | None]]) -> list[PriorFrame]:
+        out = []
+        for key, fit in finished:
+            result = self._results.pop(key)
+            if fit is not None:
+                self._last = (np.asarray(fit[0], np.float64).reshape(3), np.asarray(fit[1], np.float64).reshape(23, 3),
+                              np.asarray(fit[2], np.float64).reshape(-1))
+            score = 0.0 if result is None else float(getattr(result, "pose_score", getattr(result, "score", 1.0)))
+            world = getattr(result, "world", None)
+            out.append(PriorFrame(key, *self._last, valid=fit is not None, confidence=score if fit is not None else 0.0,
+                                  keypoints3d=None if world is None else np.asarray(world, np.float32)))
+        return out

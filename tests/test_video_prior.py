@@ -222,6 +222,47 @@ def test_onnx_hmr_estimator_with_tiny_exported_model(pose_models, tmp_path, layo
     np.testing.assert_allclose(got_joint, np.broadcast_to(joint, got_joint.shape), atol=1e-4)
     assert prior.betas.shape == (8, 10) and np.ptp(prior.betas[:, 0]) > 0  # betas follow the crops
     assert prior.body_model == "smpl"
+    # the live path (the video_prior node's) gives the same frames, one message per frame
+    from uuomocap.protocol.video import video_source
+    from uuomocap.solver_core.video_prior import StreamingVideoPrior
+
+    live = StreamingVideoPrior(f"onnx-hmr:{path}", pose_models.detector, pose_models.landmark)
+    with video_source(VIDEO) as src:
+        frames = [f for i in range(8) for f in live.push(i, src.read().rgb())]
+    assert [f.key for f in frames] == list(range(8)) and live.flush() == [] and live.body_model == "smpl"
+    np.testing.assert_allclose(np.stack([f.body_pose for f in frames]), prior.body_pose, atol=1e-5)
+    np.testing.assert_allclose(np.stack([f.global_orient for f in frames]), prior.global_orient, atol=1e-5)
+    np.testing.assert_allclose(np.stack([f.betas for f in frames]), prior.betas, atol=1e-5)
+
+
+def test_the_live_prior_holds_the_last_fit_through_frames_without_a_person(pose_models):
+    """StreamingVideoPrior (BlazePose + batched fit): frames come out in order, a frame without a
+    person carries valid=False, confidence 0 and the last fitted body (zeros before any fit)."""
+    _need_video()
+    from uuomocap.protocol.video import video_source
+    from uuomocap.solver_core.video_prior import StreamingVideoPrior
+
+    torch.set_num_threads(1)
+    live = StreamingVideoPrior("blazepose", pose_models.detector, pose_models.landmark, "open-low", batch_frames=4)
+    black = np.zeros((240, 320, 3), np.uint8)
+    with video_source(VIDEO) as src:
+        images = [black] + [src.read().rgb() for _ in range(6)] + [black]
+    out = []
+    for i, image in enumerate(images):
+        out += live.push(i, image)
+        assert live.person_found == (0 < i < 7)
+    assert [f.key for f in out] == [0, 1, 2, 3, 4, 5, 6, 7]  # the black frame ends the batch early
+    out += live.flush()
+    assert len(out) == 8 and live.body_model == "open-low"
+    first, last = out[0], out[7]
+    assert not first.valid and first.confidence == 0.0 and first.keypoints3d is None
+    assert not np.any(first.body_pose) and not np.any(first.global_orient)
+    assert all(f.valid and f.confidence > 0.5 and f.keypoints3d.shape == (33, 3) for f in out[1:7])
+    assert not last.valid and last.confidence == 0.0
+    np.testing.assert_array_equal(last.body_pose, out[6].body_pose)  # held, not reset
+    assert np.abs(out[6].body_pose).max() > 0.05  # a fitted runner, not the rest pose
+    with pytest.raises(ValueError, match="not 'blazepose' or 'onnx-hmr"):
+        StreamingVideoPrior("openpose", pose_models.detector, pose_models.landmark)
 
 
 def test_hmr_crop_box_aspect():
