@@ -46,6 +46,7 @@ class SolverInputs:
     body_model: str
     gt: dict | None = None
     source: str = ""
+    clock_sync: dict | None = None  # what ``--clock-offset auto`` found (solve prints it)
 
 
 def prior_for_markers(prior_arrays: dict, up_axis: str, marker_stamps_ns: np.ndarray, clock_offset_s: float) -> tuple[BodyPrior, np.ndarray]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from pathlib import Path
@@ -34,8 +35,11 @@ def register(subparsers) -> None:
     parser.add_argument("--markers", type=Path, help="marker file (.c3d or .trc) instead of a session")
     parser.add_argument("--prior", type=Path, help="prior.npz (video prior) to use")
     parser.add_argument("--video", type=Path, help="run the video estimator on this video to get the prior")
-    parser.add_argument("--clock-offset", type=float, default=None,
-                        help="marker_time = video_time + offset, seconds (default: the session's, else 0)")
+    parser.add_argument("--clock-offset", type=_clock_offset, default=None, metavar="SECONDS|auto",
+                        help="marker_time = video_time + offset, seconds (default: the session's, else 0). 'auto' finds "
+                             "it from the motion: how fast the body articulates, in the markers and in the video prior, "
+                             "correlated over every offset; used when the peak is clear, otherwise the default stays "
+                             "and the reason is printed (motion that repeats, e.g. steady gait, is ambiguous)")
     parser.add_argument("--up-axis", choices=("+x", "-x", "+y", "-y", "+z", "-z"), default=None,
                         help="override the marker file's up axis")
     parser.add_argument("--out", type=Path, required=True, help="output OUT.npz")
@@ -98,6 +102,34 @@ def _estimate_video_prior(video: Path, body_model: str) -> dict:
     return prior.to_arrays()
 
 
+def _clock_offset(text: str):
+    if text == "auto":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds or 'auto', got {text!r}") from None
+
+
+def _auto_clock_offset(md, prior_arrays: dict, body_model: str, recorded_s: float) -> tuple[float, dict]:
+    """The video->marker offset from the motion (``solver_core.clock_sync``); the recorded one when unclear."""
+    from uuomocap.solver_core.body_model import load_body_model
+    from uuomocap.solver_core.clock_sync import estimate_session_clock_offset
+    from uuomocap.solver_core.prior_preparation import prior_from_npz_arrays
+
+    model_name = str(prior_arrays.get("body_model", body_model))
+    try:
+        model = load_body_model(model_name if model_name in ("open-low", "open-full") else body_model)
+        est = estimate_session_clock_offset(model, md.positions, md.visible, md.stamps_ns, prior_from_npz_arrays(prior_arrays),
+                                            centre_s=recorded_s)
+    except ValueError as exc:
+        print(f"clock offset: auto failed ({exc}); keeping {recorded_s:+.3f} s", file=sys.stderr)
+        return recorded_s, {"error": str(exc), "used_s": recorded_s}
+    used = est.offset_s if est.reliable else recorded_s
+    print(f"clock offset: auto {est.summary()}; " + ("using it" if est.reliable else f"keeping {recorded_s:+.3f} s"), file=sys.stderr)
+    return used, {**est.to_dict(), "used_s": used}
+
+
 def _read_prior(path: Path) -> dict:
     from uuomocap.protocol.prior_file import PriorFileError, read_prior_npz
 
@@ -145,9 +177,14 @@ def build_inputs(args):
         source = str(args.markers)
     if args.up_axis:
         up = args.up_axis
-    if args.clock_offset is not None:
-        offset = float(args.clock_offset)
     body_model = args.body_model or body_model
+    clock_sync = None
+    if args.clock_offset == "auto":
+        if prior_arrays is None:
+            raise UserError("--clock-offset auto needs a video prior (a session's prior.npz, --prior or --video)")
+        offset, clock_sync = _auto_clock_offset(md, prior_arrays, body_model, offset)
+    elif args.clock_offset is not None:
+        offset = float(args.clock_offset)
     prior = shape = None
     if prior_arrays is not None and args.method != "markers-only":
         try:
@@ -163,7 +200,7 @@ def build_inputs(args):
     if md.n_frames < 3 or not np.isfinite(markers).any():
         raise UserError(f"{source}: too few frames or no visible marker to solve")
     return SolverInputs(markers, np.asarray(md.visible, bool), float(md.rate_hz), np.asarray(md.stamps_ns, np.int64), up, prior,
-                        shape, body_model, gt, source)
+                        shape, body_model, gt, source, clock_sync)
 
 
 def _run(args) -> int:
@@ -203,6 +240,8 @@ def _run(args) -> int:
     except ValueError as exc:
         raise UserError(" ".join(str(exc).split())) from None
     info["seconds"] = round(time.perf_counter() - t0, 3)
+    if inputs.clock_sync is not None:
+        info["clock_sync"] = inputs.clock_sync
     info["threads"] = threads
     info["out"] = str(args.out)
     info["frames"], info["markers"] = int(inputs.markers.shape[0]), int(inputs.markers.shape[1])

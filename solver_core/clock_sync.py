@@ -1,0 +1,223 @@
+"""The video -> marker clock offset, found from the motion itself.
+
+A phone started by hand is seconds off the mocap system's clock, and the session's
+``clock_offset_s`` (marker time = video time + offset) is then a guess.  Beyond the paper (it
+assumes synchronised streams): both streams see the same body move, so how fast the body
+articulates - its points moving relative to the body, not the body travelling - is one signal
+seen twice.  We compute it from each stream and take the offset that correlates them best:
+
+* markers: per frame, each marker's speed relative to the markers' median velocity (the body's
+  travel), averaged over the markers with the extremes trimmed (ghosts, track swaps and gaps
+  give single wild values);
+* video prior: per frame, each joint's speed relative to the pelvis under the prior's poses and
+  mean shape (the prior has no translation; camera or world axes do not change a speed).
+
+The correlation is Pearson's over the overlap at each candidate offset (so a partial overlap is
+judged on what overlaps), on a grid of ``1 / rate_hz`` refined by a parabola through the peak.
+Periodic motion (gait) correlates again one cycle away: the runner-up peak is reported beside
+the best, and ``ambiguous`` says when it comes close; ``weak`` says when even the best peak is
+low (a near-still take).  Two unrelated smooth signals can still correlate by chance (0.6 was
+seen), so the summary always carries the numbers.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .lbs import forward
+from .prior_preparation import BodyPrior, fill_missing_prior_frames, prior_shape
+
+
+@dataclass(frozen=True)
+class ClockSyncConfig:
+    # Grid of the offset search (the peak is refined between grid points).
+    rate_hz: float = 60.0
+    # Both signals are smoothed with a Gaussian of this sigma first: the prior's frame-to-frame
+    # jitter and the markers' noise are fast, the body's articulation is not.
+    smooth_s: float = 0.04
+    # Candidate offsets must overlap the two streams by at least this many seconds, and by at
+    # least this fraction of the shorter stream (short overlaps correlate by chance).
+    min_overlap_s: float = 2.0
+    min_overlap_fraction: float = 0.5
+    # Search only |offset - centre| <= this (None: every offset with enough overlap).
+    max_offset_s: float | None = None
+    # A runner-up peak at least this far from the best counts as a separate candidate.
+    runner_up_min_distance_s: float = 0.25
+    # ``ambiguous`` when the runner-up correlates at least this fraction of the best.
+    ambiguous_ratio: float = 0.9
+    # Below this correlation the two signals share too little to trust the peak (measured: right
+    # offsets correlated 0.48-0.94; a near-still take's wrong peak 0.13, sensor noise alone 0.27).
+    min_correlation: float = 0.4
+    # Fraction trimmed at each end of the per-frame marker speeds before averaging.
+    trim_fraction: float = 0.1
+
+
+@dataclass(frozen=True)
+class ClockOffsetEstimate:
+    offset_s: float  # marker time = video time + offset_s
+    correlation: float  # Pearson correlation of the two motion signals at offset_s
+    overlap_s: float  # seconds the two streams overlap at offset_s
+    runner_up_offset_s: float | None  # the best other peak (None when there is none)
+    runner_up_correlation: float | None
+    ambiguous: bool  # the runner-up correlates nearly as well (periodic motion): check the offset by eye
+    weak: bool  # the best correlation is below ``min_correlation``: the streams share too little motion
+
+    @property
+    def reliable(self) -> bool:
+        return not (self.ambiguous or self.weak)
+
+    def summary(self) -> str:
+        text = f"{self.offset_s:+.3f} s (motion correlation {self.correlation:.2f} over {self.overlap_s:.1f} s"
+        if self.runner_up_offset_s is not None:
+            text += f"; next best {self.runner_up_offset_s:+.3f} s at {self.runner_up_correlation:.2f}"
+        text += ")"
+        if self.weak:
+            text += " - WEAK: the streams share too little motion to trust it"
+        elif self.ambiguous:
+            text += " - AMBIGUOUS: the motion repeats (gait?); a hop or clap at the start of the take pins it"
+        return text
+
+    def to_dict(self) -> dict:
+        return {"offset_s": self.offset_s, "correlation": self.correlation, "overlap_s": self.overlap_s,
+                "runner_up_offset_s": self.runner_up_offset_s, "runner_up_correlation": self.runner_up_correlation,
+                "ambiguous": self.ambiguous, "weak": self.weak, "reliable": self.reliable}
+
+
+def _smooth(x: np.ndarray, dt: float, sigma_s: float) -> np.ndarray:
+    """Gaussian smoothing of a 1-D signal with NaN gaps (NaN stays NaN; weights renormalised)."""
+    if sigma_s <= 0:
+        return x
+    half = max(1, int(np.ceil(3 * sigma_s / dt)))
+    k = np.exp(-0.5 * (np.arange(-half, half + 1) * dt / sigma_s) ** 2)
+    ok = np.isfinite(x)
+    num = np.convolve(np.where(ok, x, 0.0), k, mode="same")
+    den = np.convolve(ok.astype(float), k, mode="same")
+    out = np.full_like(x, np.nan, dtype=np.float64)
+    out[ok] = num[ok] / den[ok]
+    return out
+
+
+def marker_motion_signal(positions: np.ndarray, visible: np.ndarray, stamps_ns: np.ndarray,
+                         trim_fraction: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """How fast the markers move relative to the body's travel, per frame.
+
+    positions: (T, M, 3) metres (NaN where missing); visible: (T, M) bool; stamps_ns: (T,) marker clock.
+    Returns (times_s (T-1,) midpoints, speed (T-1,) m/s; NaN where fewer than 3 markers were seen
+    in both frames).
+    """
+    p = np.asarray(positions, np.float64)
+    vis = np.asarray(visible, bool) & np.isfinite(p).all(-1)
+    t = np.asarray(stamps_ns, np.float64) * 1e-9
+    if p.shape[0] < 2:
+        raise ValueError("markers: need at least 2 frames to measure motion")
+    dt = np.diff(t)
+    if np.any(dt <= 0):
+        raise ValueError("markers: stamps must increase")
+    both = vis[1:] & vis[:-1]
+    vel = np.where(both[..., None], (p[1:] - p[:-1]) / dt[:, None, None], np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a frame pair with no marker seen twice -> NaN
+        travel = np.nanmedian(vel, axis=1)  # (T-1, 3): the body's travel
+    rel = np.linalg.norm(vel - travel[:, None], axis=-1)  # (T-1, M), NaN where unseen
+    rel = np.sort(np.where(np.isfinite(rel), rel, np.inf), axis=1)
+    n = both.sum(1)
+    speed = np.full(len(n), np.nan)
+    for k in np.flatnonzero(n >= 3):  # a trimmed mean over the markers seen in both frames
+        cut = int(np.floor(trim_fraction * n[k]))
+        speed[k] = rel[k, cut:n[k] - cut].mean()
+    return 0.5 * (t[1:] + t[:-1]), speed
+
+
+def prior_motion_signal(model, prior: BodyPrior, batch: int = 512, with_root: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """How fast the prior's joints move relative to its pelvis, per frame.
+
+    prior: BodyPrior on its own (video) clock, camera or world frame; model: BodyModel of its betas.
+    Returns (times_s (F-1,) midpoints on the video clock, speed (F-1,) m/s; NaN next to frames
+    without an estimate).
+    """
+    if prior.num_frames < 2:
+        raise ValueError("prior: need at least 2 frames to measure motion")
+    filled = fill_missing_prior_frames(prior)
+    betas = torch.as_tensor(prior_shape(prior) if prior.valid.any() else filled.betas_per_frame[0], dtype=torch.float32)[None]
+    pose = torch.as_tensor(filled.poses72(), dtype=torch.float32)
+    if not with_root:
+        pose[:, :3] = 0.0
+    with torch.no_grad():
+        joints = torch.cat([forward(model, betas, pose[i:i + batch]).joints for i in range(0, len(pose), batch)]).double().numpy()
+    rel = joints - joints[:, :1]  # the prior has no translation: the pelvis is its origin
+    t = prior.stamps_ns.astype(np.float64) * 1e-9
+    dt = np.diff(t)
+    if np.any(dt <= 0):
+        raise ValueError("prior: stamps must increase")
+    speed = np.linalg.norm(np.diff(rel, axis=0), axis=-1).mean(1) / dt
+    ok = prior.valid[1:] & prior.valid[:-1]
+    return 0.5 * (t[1:] + t[:-1]), np.where(ok, speed, np.nan)
+
+
+def _pearson(a: np.ndarray, b: np.ndarray) -> float:
+    a, b = a - a.mean(), b - b.mean()
+    den = np.sqrt((a * a).sum() * (b * b).sum())
+    return float((a * b).sum() / den) if den > 0 else float("nan")
+
+
+def estimate_clock_offset(marker_t: np.ndarray, marker_speed: np.ndarray, prior_t: np.ndarray, prior_speed: np.ndarray,
+                          config: ClockSyncConfig = ClockSyncConfig(), centre_s: float = 0.0) -> ClockOffsetEstimate:
+    """The offset (marker time = video time + offset) that best aligns the two motion signals.
+
+    marker_t, marker_speed: (N,) seconds on the marker clock and m/s (``marker_motion_signal``);
+    prior_t, prior_speed: (K,) seconds on the video clock and m/s (``prior_motion_signal``).
+    centre_s: where ``config.max_offset_s`` is measured from (e.g. the session's recorded offset).
+    Raises ValueError when no offset gives the required overlap or a signal does not move.
+    """
+    dt = 1.0 / config.rate_hz
+    grid_m = np.arange(marker_t[0], marker_t[-1] + 1e-9, dt)
+    m = _smooth(np.interp(grid_m, marker_t, np.where(np.isfinite(marker_speed), marker_speed, np.nan)), dt, config.smooth_s)
+    # np.interp spreads NaN to both neighbours; that only loses a sample each side of a gap
+    grid_p = np.arange(prior_t[0], prior_t[-1] + 1e-9, dt)
+    p = _smooth(np.interp(grid_p, prior_t, np.where(np.isfinite(prior_speed), prior_speed, np.nan)), dt, config.smooth_s)
+    span_m, span_p = grid_m[-1] - grid_m[0], grid_p[-1] - grid_p[0]
+    need = max(config.min_overlap_s, config.min_overlap_fraction * min(span_m, span_p))
+    lo, hi = grid_m[0] - grid_p[-1] + need, grid_m[-1] - grid_p[0] - need
+    if config.max_offset_s is not None:
+        lo, hi = max(lo, centre_s - config.max_offset_s), min(hi, centre_s + config.max_offset_s)
+    if hi < lo:
+        raise ValueError(f"the streams cannot overlap by {need:.1f} s (markers {span_m:.1f} s, video {span_p:.1f} s"
+                         + (f", offsets within {config.max_offset_s} s of {centre_s:+.2f} s" if config.max_offset_s is not None else "") + ")")
+    offsets = np.arange(lo, hi + 1e-9, dt)
+    corr, overlap = np.full(len(offsets), np.nan), np.zeros(len(offsets))
+    for i, o in enumerate(offsets):
+        q = np.interp(grid_m - o, grid_p, p, left=np.nan, right=np.nan)  # the prior's signal on the marker grid
+        ok = np.isfinite(q) & np.isfinite(m)
+        overlap[i] = ok.sum() * dt
+        if overlap[i] >= need and np.ptp(m[ok]) > 0 and np.ptp(q[ok]) > 0:
+            corr[i] = _pearson(m[ok], q[ok])
+    if not np.isfinite(corr).any():
+        raise ValueError("no offset gives an overlap where both streams move (a still subject, or no shared frames)")
+    c = np.where(np.isfinite(corr), corr, -np.inf)
+    best = int(np.argmax(c))
+    shift = 0.0
+    if 0 < best < len(c) - 1 and np.isfinite(c[best - 1]) and np.isfinite(c[best + 1]):
+        den = c[best - 1] - 2 * c[best] + c[best + 1]
+        shift = float(np.clip(0.5 * (c[best - 1] - c[best + 1]) / den, -0.5, 0.5)) if den < 0 else 0.0
+    # runner-up: the best local maximum far enough from the winner
+    peaks = [i for i in range(len(c)) if np.isfinite(c[i]) and (i == 0 or c[i] >= c[i - 1]) and (i == len(c) - 1 or c[i] >= c[i + 1])
+             and abs(offsets[i] - offsets[best]) >= config.runner_up_min_distance_s]
+    runner = max(peaks, key=lambda i: c[i]) if peaks else None
+    ambiguous = runner is not None and c[runner] >= config.ambiguous_ratio * c[best]
+    return ClockOffsetEstimate(
+        offset_s=float(offsets[best] + shift * dt), correlation=float(c[best]), overlap_s=float(overlap[best]),
+        runner_up_offset_s=None if runner is None else float(offsets[runner]),
+        runner_up_correlation=None if runner is None else float(c[runner]), ambiguous=bool(ambiguous),
+        weak=bool(c[best] < config.min_correlation))
+
+
+def estimate_session_clock_offset(model, positions: np.ndarray, visible: np.ndarray, stamps_ns: np.ndarray, prior: BodyPrior,
+                                  config: ClockSyncConfig = ClockSyncConfig(), centre_s: float = 0.0) -> ClockOffsetEstimate:
+    """``estimate_clock_offset`` from the markers (T, M, 3) and a video-clock prior, in one call."""
+    mt, ms = marker_motion_signal(positions, visible, stamps_ns, config.trim_fraction)
+    pt, ps = prior_motion_signal(model, prior)
+    return estimate_clock_offset(mt, ms, pt, ps, config, centre_s)
