@@ -52,6 +52,9 @@ class ClockSyncConfig:
     # Below this correlation the two signals share too little to trust the peak (measured: right
     # offsets correlated 0.48-0.94; a near-still take's wrong peak 0.13, sensor noise alone 0.27).
     min_correlation: float = 0.4
+    # Rank offsets by the significance of their correlation (Fisher z times the square root of the
+    # overlap) instead of the correlation alone: a short overlap correlates high by chance.
+    rank_by_significance: bool = True
     # Fraction trimmed at each end of the per-frame marker speeds before averaging.
     trim_fraction: float = 0.1
 
@@ -198,6 +201,8 @@ def estimate_clock_offset(marker_t: np.ndarray, marker_speed: np.ndarray, prior_
     if not np.isfinite(corr).any():
         raise ValueError("no offset gives an overlap where both streams move (a still subject, or no shared frames)")
     c = np.where(np.isfinite(corr), corr, -np.inf)
+    if config.rank_by_significance:  # the peak search runs on the significance; correlations are reported
+        c = np.where(np.isfinite(corr), np.arctanh(np.clip(corr, -0.999, 0.999)) * np.sqrt(overlap), -np.inf)
     best = int(np.argmax(c))
     shift = 0.0
     if 0 < best < len(c) - 1 and np.isfinite(c[best - 1]) and np.isfinite(c[best + 1]):
@@ -209,10 +214,10 @@ def estimate_clock_offset(marker_t: np.ndarray, marker_speed: np.ndarray, prior_
     runner = max(peaks, key=lambda i: c[i]) if peaks else None
     ambiguous = runner is not None and c[runner] >= config.ambiguous_ratio * c[best]
     return ClockOffsetEstimate(
-        offset_s=float(offsets[best] + shift * dt), correlation=float(c[best]), overlap_s=float(overlap[best]),
+        offset_s=float(offsets[best] + shift * dt), correlation=float(corr[best]), overlap_s=float(overlap[best]),
         runner_up_offset_s=None if runner is None else float(offsets[runner]),
-        runner_up_correlation=None if runner is None else float(c[runner]), ambiguous=bool(ambiguous),
-        weak=bool(c[best] < config.min_correlation))
+        runner_up_correlation=None if runner is None else float(corr[runner]), ambiguous=bool(ambiguous),
+        weak=bool(corr[best] < config.min_correlation))
 
 
 def estimate_session_clock_offset(model, positions: np.ndarray, visible: np.ndarray, stamps_ns: np.ndarray, prior: BodyPrior,
