@@ -47,7 +47,7 @@ class ClockSyncConfig:
     max_offset_s: float | None = None
     # A runner-up peak at least this far from the best counts as a separate candidate.
     runner_up_min_distance_s: float = 0.25
-    # ``ambiguous`` when the runner-up correlates at least this fraction of the best.
+    # ``ambiguous`` when the runner-up peak ranks at least this fraction of the best (on the ranking score).
     ambiguous_ratio: float = 0.9
     # Below this correlation the two signals share too little to trust the peak (measured: right
     # offsets correlated 0.48-0.94; a near-still take's wrong peak 0.13, sensor noise alone 0.27).
@@ -135,7 +135,7 @@ def marker_motion_signal(positions: np.ndarray, visible: np.ndarray, stamps_ns: 
     return 0.5 * (t[1:] + t[:-1]), speed
 
 
-def prior_motion_signal(model, prior: BodyPrior, batch: int = 512, with_root: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def prior_motion_signal(model, prior: BodyPrior, batch: int = 512) -> tuple[np.ndarray, np.ndarray]:
     """How fast the prior's joints move relative to its pelvis, per frame.
 
     prior: BodyPrior on its own (video) clock, camera or world frame; model: BodyModel of its betas.
@@ -147,8 +147,6 @@ def prior_motion_signal(model, prior: BodyPrior, batch: int = 512, with_root: bo
     filled = fill_missing_prior_frames(prior)
     betas = torch.as_tensor(prior_shape(prior) if prior.valid.any() else filled.betas_per_frame[0], dtype=torch.float32)[None]
     pose = torch.as_tensor(filled.poses72(), dtype=torch.float32)
-    if not with_root:
-        pose[:, :3] = 0.0
     with torch.no_grad():
         joints = torch.cat([forward(model, betas, pose[i:i + batch]).joints for i in range(0, len(pose), batch)]).double().numpy()
     rel = joints - joints[:, :1]  # the prior has no translation: the pelvis is its origin
@@ -200,9 +198,9 @@ def estimate_clock_offset(marker_t: np.ndarray, marker_speed: np.ndarray, prior_
             corr[i] = _pearson(m[ok], q[ok])
     if not np.isfinite(corr).any():
         raise ValueError("no offset gives an overlap where both streams move (a still subject, or no shared frames)")
-    c = np.where(np.isfinite(corr), corr, -np.inf)
-    if config.rank_by_significance:  # the peak search runs on the significance; correlations are reported
-        c = np.where(np.isfinite(corr), np.arctanh(np.clip(corr, -0.999, 0.999)) * np.sqrt(overlap), -np.inf)
+    # the peak search runs on the ranking score; the correlations are what is reported
+    score = np.arctanh(np.clip(corr, -0.999, 0.999)) * np.sqrt(overlap) if config.rank_by_significance else corr
+    c = np.where(np.isfinite(corr), score, -np.inf)
     best = int(np.argmax(c))
     shift = 0.0
     if 0 < best < len(c) - 1 and np.isfinite(c[best - 1]) and np.isfinite(c[best + 1]):
