@@ -47,6 +47,39 @@ def _evenly_spaced(indices: np.ndarray, count: int) -> np.ndarray:
 
 
 @torch.no_grad()
+def prior_yaw_registration(
+    markers: np.ndarray,
+    visible: np.ndarray,
+    up_axis: str,
+    prior: BodyPrior,
+    shape_prior: np.ndarray,
+    model,
+    yaw_starts_deg: tuple[float, ...] = (0.0, 90.0, 180.0, 270.0),
+    frames: int = 60,
+    icp_iterations: int = 20,
+) -> tuple[float, float]:
+    """The prior body's yaw registered to the markers by ICP on ``frames`` evenly spaced frames.
+
+    markers (T,M,3) metres NaN missing; visible (T,M); prior: world prior at marker frames;
+    shape_prior (B,); model: body model (its every vertex is a registration target).
+    Returns (yaw radians, RMS marker-to-vertex distance metres) of the best start.
+    """
+    up = up_tensor(up_axis)
+    vis_np = np.asarray(visible, bool) & np.isfinite(markers).all(-1)
+    nb = min(len(shape_prior), model.num_betas)
+    betas = torch.as_tensor(np.asarray(shape_prior)[:nb], dtype=torch.float32)
+    sel = torch.as_tensor(_evenly_spaced(np.flatnonzero(vis_np.any(1)), frames))
+    root = torch.as_tensor(prior.root_orient, dtype=torch.float32)[sel]
+    body = torch.as_tensor(prior.body_pose, dtype=torch.float32)[sel]
+    out = pose_params(model, BodyParams(root, body, torch.zeros(len(sel), 3), betas, torch.zeros(())), up)
+    pts = (out.vertices - out.joints[:, :1])[None].expand(len(yaw_starts_deg), -1, -1, -1)
+    starts = torch.tensor([math.radians(d) for d in yaw_starts_deg], dtype=torch.float32)
+    mk = torch.as_tensor(np.asarray(markers)[sel.numpy()], dtype=torch.float32)
+    yaw, _, err, _, _ = rigid_yaw_icp(pts, mk, torch.as_tensor(vis_np[sel.numpy()]), up, starts, icp_iterations)
+    best = int(torch.argmin(err))
+    return float(yaw[best]), math.sqrt(float(err[best]))
+
+
 def video_rigid_registration(
     markers: np.ndarray,
     visible: np.ndarray,
@@ -63,26 +96,17 @@ def video_rigid_registration(
     markers (T,M,3) metres NaN missing; visible (T,M); prior: world prior at marker frames;
     shape_prior (B,); model: body model (its every vertex is a registration target).
     """
-    up = up_tensor(up_axis)
-    vis_np = np.asarray(visible, bool) & np.isfinite(markers).all(-1)
-    mk = torch.as_tensor(markers, dtype=torch.float32)
-    vis = torch.as_tensor(vis_np)
+    yaw, rms = prior_yaw_registration(markers, visible, up_axis, prior, shape_prior, model, yaw_starts_deg, frames, icp_iterations)
+    vis = torch.as_tensor(np.asarray(visible, bool) & np.isfinite(markers).all(-1))
     root = torch.as_tensor(prior.root_orient, dtype=torch.float32)
     body = torch.as_tensor(prior.body_pose, dtype=torch.float32)
     nb = min(len(shape_prior), model.num_betas)
     betas = torch.as_tensor(np.asarray(shape_prior)[:nb], dtype=torch.float32)
-    sel = torch.as_tensor(_evenly_spaced(np.flatnonzero(vis_np.any(1)), frames))
-    zero_yaw = BodyParams(root[sel], body[sel], torch.zeros(len(sel), 3), betas, torch.zeros(()))
-    out = pose_params(model, zero_yaw, up)
-    centre = out.joints[:, :1]
-    pts = (out.vertices - centre)[None].expand(len(yaw_starts_deg), -1, -1, -1)
-    starts = torch.tensor([math.radians(d) for d in yaw_starts_deg], dtype=torch.float32)
-    yaw, _, err, _, _ = rigid_yaw_icp(pts, mk[sel], vis[sel], up, starts, icp_iterations)
-    best = int(torch.argmin(err))
+    yaw_t = torch.tensor(yaw, dtype=torch.float32)
     all_ids = np.arange(model.v_template.shape[0])
-    trans = full_translation(model, mk, vis, root, body, betas, up, all_ids, yaw[best])
-    params = BodyParams(root.clone(), body.clone(), trans, betas.clone(), yaw[best].clone())
-    return BaselineResult(params, {"yaw_deg": math.degrees(float(yaw[best])) % 360.0, "icp_rms_mm": 1000 * math.sqrt(float(err[best]))})
+    trans = full_translation(model, torch.as_tensor(markers, dtype=torch.float32), vis, root, body, betas, up_tensor(up_axis), all_ids, yaw_t)
+    params = BodyParams(root.clone(), body.clone(), trans, betas.clone(), yaw_t.clone())
+    return BaselineResult(params, {"yaw_deg": math.degrees(yaw) % 360.0, "icp_rms_mm": 1000 * rms})
 
 
 @torch.no_grad()

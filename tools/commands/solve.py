@@ -111,17 +111,18 @@ def _clock_offset(text: str):
         raise argparse.ArgumentTypeError(f"expected seconds or 'auto', got {text!r}") from None
 
 
-def _auto_clock_offset(md, prior_arrays: dict, body_model: str, recorded_s: float) -> tuple[float, dict]:
+def _auto_clock_offset(md, prior_arrays: dict, body_model: str, recorded_s: float, up_axis: str) -> tuple[float, dict]:
     """The video->marker offset from the motion (``solver_core.clock_sync``); the recorded one when unclear."""
-    from uuomocap.solver_core.body_model import load_body_model
+    from uuomocap.solver_core.body_model import load_solver_models
     from uuomocap.solver_core.clock_sync import estimate_session_clock_offset
     from uuomocap.solver_core.prior_preparation import prior_from_npz_arrays
 
     model_name = str(prior_arrays.get("body_model", body_model))
     try:
-        model = load_body_model(model_name if model_name in ("open-low", "open-full") else body_model)
+        # the low-resolution model: the refinement registers its every vertex, as video-rr does
+        _, model = load_solver_models(model_name if model_name in ("open-low", "open-full") else body_model)
         est = estimate_session_clock_offset(model, md.positions, md.visible, md.stamps_ns, prior_from_npz_arrays(prior_arrays),
-                                            centre_s=recorded_s)
+                                            centre_s=recorded_s, up_axis=up_axis)
     except ValueError as exc:
         print(f"clock offset: auto failed ({exc}); keeping {recorded_s:+.3f} s", file=sys.stderr)
         return recorded_s, {"error": str(exc), "used_s": recorded_s}
@@ -182,7 +183,7 @@ def build_inputs(args):
     if args.clock_offset == "auto":
         if prior_arrays is None:
             raise UserError("--clock-offset auto needs a video prior (a session's prior.npz, --prior or --video)")
-        offset, clock_sync = _auto_clock_offset(md, prior_arrays, body_model, offset)
+        offset, clock_sync = _auto_clock_offset(md, prior_arrays, body_model, offset, up)
     elif args.clock_offset is not None:
         offset = float(args.clock_offset)
     prior = shape = None
