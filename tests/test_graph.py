@@ -480,9 +480,9 @@ def test_sigkill_recorder_then_launcher_leaves_readable_file_and_no_process(tmp_
         cli = [sys.executable, "-m", "uuomocap.cli"]
         hz = json.loads(subprocess.run([*cli, "topic", "hz", "markers/raw", "--graph", gname, "--duration", "1.5", "--json"],
                                        capture_output=True, text=True, timeout=DEADLINE).stdout)
-        # 120 Hz for 1.5 s; the count also depends on when the tool's subscription joined, which a busy
-        # machine delays (a CI run beside the solver tests: exactly 60) - the rate and the gaps are the check
-        assert hz["messages"] > 30 and hz["gaps"] == 0 and 80 < hz["rate_publish_hz"] < 160
+        # 120 Hz for 1.5 s from the first message received (the window used to open at the subscription,
+        # which a loaded machine's slow join left empty: 0 messages in session 43's CI beside two solves)
+        assert hz["messages"] > 90 and hz["gaps"] == 0 and 80 < hz["rate_publish_hz"] < 160
         health = json.loads(subprocess.run([*cli, "graph", "--graph", gname, "--duration", "2.5", "--json"],
                                            capture_output=True, text=True, timeout=DEADLINE).stdout)
         states = {n["name"]: n["state"] for n in health["nodes"]}

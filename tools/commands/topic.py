@@ -73,7 +73,9 @@ def register(subparsers) -> None:
                                      "publish->receive latency."))
     _add_graph_flags(p)
     p.add_argument("topic")
-    p.add_argument("--duration", type=float, default=5.0, help="seconds to measure (default 5)")
+    p.add_argument("--duration", type=float, default=5.0,
+                   help="seconds to measure, counted from the first message (default 5); a topic that sends nothing "
+                        f"ends the command after DURATION + {HZ_JOIN_WAIT_S:.0f} s")
     p.add_argument("--window", type=float, default=1.0, help="print a line every WINDOW seconds (text mode)")
     add_json_flag(p)
     p.set_defaults(func=cmd_hz)
@@ -183,6 +185,9 @@ def hz_summary(samples: list[tuple[int, int, int]], stats) -> dict:
     return out
 
 
+HZ_JOIN_WAIT_S = 5.0  # how long `topic hz` waits for a first message beyond --duration
+
+
 def _hz_line(topic: str, s: dict) -> str:
     if s["messages"] < 2:
         return f"{topic}: {s['messages']} messages"
@@ -196,11 +201,15 @@ def cmd_hz(args) -> int:
     sub, _ = _subscriber(args, [args.topic])
     samples: list[tuple[int, int, int]] = []
     next_print = time.monotonic() + args.window
-    end = time.monotonic() + args.duration
+    # the window opens at the first message: a subscription takes a while to reach the publishers
+    # (on a loaded machine over 1.5 s, which left a 1.5 s measurement empty)
+    end, give_up = None, time.monotonic() + args.duration + HZ_JOIN_WAIT_S
     try:
-        while time.monotonic() < end:
+        while time.monotonic() < (end if end is not None else give_up):
             for env in sub.recv(50):
                 if env.seq >= 0:
+                    if end is None:
+                        end = time.monotonic() + args.duration
                     samples.append((env.stamp_ns, env.publish_ns, time.monotonic_ns()))
             if not args.json and time.monotonic() >= next_print:
                 next_print += args.window
