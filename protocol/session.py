@@ -445,6 +445,24 @@ def save_session(
     return ypath
 
 
+def set_session_clock_offset(directory: str | Path, offset_s: float, note: str = "") -> Path:
+    """Record ``offset_s`` (marker time = video time + offset) as the session's video clock offset,
+    keeping everything else in session.yaml; ``note`` says where it came from (kept beside it).
+    The file is replaced atomically.  Returns the session.yaml path."""
+    ypath = Path(directory) / SESSION_YAML
+    load_session(directory, load_prior=False, load_gt=False)  # a valid session, or the reason it is not
+    cfg = yaml.safe_load(ypath.read_text(encoding="utf-8"))
+    video = cfg.get("video") if isinstance(cfg.get("video"), dict) else {}
+    video["clock_offset_s"] = round(float(offset_s), 4)  # 0.1 ms: far below a video frame
+    if note:
+        video["clock_offset_note"] = str(note)
+    cfg["video"] = video
+    tmp = ypath.with_name(ypath.name + ".part")
+    tmp.write_text(yaml.safe_dump(cfg, sort_keys=False, default_flow_style=None, width=100), encoding="utf-8")
+    os.replace(tmp, ypath)
+    return ypath
+
+
 def _plain(obj):
     """YAML-safe plain values (numpy scalars -> Python, tuples -> lists)."""
     if isinstance(obj, dict):

@@ -119,6 +119,21 @@ def test_solve_finds_a_phone_started_late_on_a_real_motion(tmp_path, capsys):
     assert abs(sync["offset_s"] - 1.3) < 0.03 and sync["reliable"] and sync["used_s"] == sync["offset_s"], sync
     assert abs(sync["correlation_offset_s"] - 1.3) < 0.15 and sync["fit_rms_mm"] > 0  # the peak, refined by the fit
     assert "clock offset: auto +1.2" in captured.err or "clock offset: auto +1.3" in captured.err
+    # --write-offset records it in session.yaml (the rest kept), where replays and uuo-window read it
+    from uuomocap.protocol.session import load_session
+
+    before = (session / "session.yaml").read_text()
+    assert main(["solve", str(session), "--method", "video-rr", "--clock-offset", "auto", "--write-offset", "--out", str(out), "--quiet"]) == 0
+    assert "written to" in capsys.readouterr().err
+    s = load_session(session, load_prior=False, load_gt=False)
+    assert abs(s.clock_offset_s - sync["offset_s"]) < 1e-4
+    import yaml
+
+    cfg_before, cfg_after = yaml.safe_load(before), yaml.safe_load((session / "session.yaml").read_text())
+    assert cfg_after["video"]["clock_offset_note"].startswith("uuomocap solve --clock-offset auto: motion correlation")
+    assert {k: v for k, v in cfg_after.items() if k != "video"} == {k: v for k, v in cfg_before.items() if k != "video"}
+    assert main(["solve", "--markers", str(session / "markers.c3d"), "--prior", str(session / "prior.npz"), "--write-offset",
+                 "--out", str(out), "--quiet"]) == 2  # loose files have no session.yaml to write
     # without a prior there is nothing to sync against
     assert main(["solve", "--markers", str(session / "markers.c3d"), "--clock-offset", "auto", "--out", str(out), "--quiet"]) == 2
     assert "needs a video prior" in capsys.readouterr().err

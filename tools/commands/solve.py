@@ -40,6 +40,10 @@ def register(subparsers) -> None:
                              "it from the motion: how fast the body articulates, in the markers and in the video prior, "
                              "correlated over every offset; used when the peak is clear, otherwise the default stays "
                              "and the reason is printed (motion that repeats, e.g. steady gait, is ambiguous)")
+    parser.add_argument("--write-offset", action="store_true",
+                        help="record the clock offset this solve used (e.g. the one --clock-offset auto found) in "
+                             "SESSION/session.yaml, so replays through the graph and --method uuo-window use it too; "
+                             "an unclear auto result writes nothing")
     parser.add_argument("--up-axis", choices=("+x", "-x", "+y", "-y", "+z", "-z"), default=None,
                         help="override the marker file's up axis")
     parser.add_argument("--out", type=Path, required=True, help="output OUT.npz")
@@ -131,6 +135,23 @@ def _auto_clock_offset(md, prior_arrays: dict, body_model: str, recorded_s: floa
     return used, {**est.to_dict(), "used_s": used}
 
 
+def _write_offset(args, offset: float, clock_sync: dict | None) -> None:
+    from uuomocap.protocol.session import SessionError, set_session_clock_offset
+
+    if args.session is None:
+        raise UserError("--write-offset records the offset in a session's session.yaml: give a SESSION directory")
+    if clock_sync is not None and not clock_sync.get("reliable"):
+        print("clock offset: not written (auto found no clear offset)", file=sys.stderr)
+        return
+    note = "" if clock_sync is None else (f"uuomocap solve --clock-offset auto: motion correlation {clock_sync['correlation']:.2f}"
+                                          + (f", registered body fit {clock_sync['fit_rms_mm']:.1f} mm" if clock_sync.get("fit_rms_mm") else ""))
+    try:
+        path = set_session_clock_offset(args.session, offset, note)
+    except SessionError as exc:
+        raise UserError(str(exc)) from None
+    print(f"clock offset {offset:+.3f} s written to {path}", file=sys.stderr)
+
+
 def _read_prior(path: Path) -> dict:
     from uuomocap.protocol.prior_file import PriorFileError, read_prior_npz
 
@@ -186,6 +207,8 @@ def build_inputs(args):
         offset, clock_sync = _auto_clock_offset(md, prior_arrays, body_model, offset, up)
     elif args.clock_offset is not None:
         offset = float(args.clock_offset)
+    if args.write_offset:
+        _write_offset(args, offset, clock_sync)
     prior = shape = None
     if prior_arrays is not None and args.method != "markers-only":
         try:
