@@ -137,3 +137,22 @@ def test_solve_finds_a_phone_started_late_on_a_real_motion(tmp_path, capsys):
     # without a prior there is nothing to sync against
     assert main(["solve", "--markers", str(session / "markers.c3d"), "--clock-offset", "auto", "--out", str(out), "--quiet"]) == 2
     assert "needs a video prior" in capsys.readouterr().err
+
+
+def test_bench_sync_counts_found_flagged_and_wrong_offsets(tmp_path, capsys):
+    """`uuomocap bench sync` on the procedural walk (which repeats exactly: flagged, never used) and,
+    when the shared data is here, the CMU motion (found within the tolerance)."""
+    from uuomocap.cli import main
+
+    motions = "walk" + (f",{CMU_BVH}" if CMU_BVH.is_file() else "")
+    out = tmp_path / "sync.json"
+    assert main(["bench", "sync", "--motions", motions, "--seeds", "1", "--sync-errors", "1.3", "--quiet", "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "used right" in text and "walk" in text
+    data = json.loads(out.read_text())
+    walk = data["summary"]["walk"]
+    assert walk["sessions"] == 1 and walk["used_right"] == 0 and walk["used_wrong"] == 0 and walk["ambiguous"] + walk["weak"] == 1
+    if CMU_BVH.is_file():
+        cmu = data["summary"][CMU_BVH.name]
+        assert cmu["used_right"] == 1 and cmu["max_error_ms"] < 50, cmu
+    assert main(["bench", "sync", "--motions", "no_such.bvh", "--quiet"]) == 2
