@@ -62,6 +62,17 @@ class ClockSyncConfig:
     refine_half_width_s: float = 0.25
     refine_step_s: float = 0.05
     refine_frames: int = 60
+    # The fit also judges between correlation peaks: every peak ranking at least this fraction of
+    # the best (up to refine_peaks of them) is refined, and the best fit wins.  Motions with few
+    # cycles in a take (the generator's squat, arms, turn: 2-3) let a peak one cycle off rank first
+    # by the correlation (6 of 105 bench sessions, session 43); the fit tells the cycles apart when
+    # the motion does, and ``ambiguous`` says when it does not (the second fit within
+    # fit_ambiguous_ratio of the best: on the bench's walk / run / turn the right offsets won by
+    # 1.20-1.76x, the cycle-off ones by 1.10-1.21x).  The peaks are judged on the frames the video
+    # covers at all of them; fits over different frames differ by more than the cycles do.
+    candidate_ratio: float = 0.6
+    refine_peaks: int = 3
+    fit_ambiguous_ratio: float = 1.25
     # Fraction trimmed at each end of the per-frame marker speeds before averaging.
     trim_fraction: float = 0.1
 
@@ -77,6 +88,8 @@ class ClockOffsetEstimate:
     weak: bool  # the best correlation is below ``min_correlation``: the streams share too little motion
     correlation_offset_s: float | None = None  # the correlation's peak, when offset_s was refined by the fit
     fit_rms_mm: float | None = None  # the registered prior body's marker fit at offset_s (refined only)
+    candidates_s: tuple[float, ...] = ()  # the correlation peaks worth refining, best first
+    runner_up_fit_rms_mm: float | None = None  # the best fit among the other refined peaks
 
     @property
     def reliable(self) -> bool:
@@ -85,7 +98,10 @@ class ClockOffsetEstimate:
     def summary(self) -> str:
         text = f"{self.offset_s:+.3f} s ("
         if self.correlation_offset_s is not None:
-            text += f"registered body fit {self.fit_rms_mm:.1f} mm; motion correlation peak {self.correlation_offset_s:+.3f} s, "
+            text += f"registered body fit {self.fit_rms_mm:.1f} mm"
+            if self.runner_up_fit_rms_mm is not None:
+                text += f" against {self.runner_up_fit_rms_mm:.1f} at the next peak"
+            text += f"; motion correlation peak {self.correlation_offset_s:+.3f} s, "
         text += f"correlation {self.correlation:.2f} over {self.overlap_s:.1f} s"
         if self.runner_up_offset_s is not None:
             text += f"; next best {self.runner_up_offset_s:+.3f} s at {self.runner_up_correlation:.2f}"
@@ -100,7 +116,8 @@ class ClockOffsetEstimate:
         return {"offset_s": self.offset_s, "correlation": self.correlation, "overlap_s": self.overlap_s,
                 "runner_up_offset_s": self.runner_up_offset_s, "runner_up_correlation": self.runner_up_correlation,
                 "ambiguous": self.ambiguous, "weak": self.weak, "reliable": self.reliable,
-                "correlation_offset_s": self.correlation_offset_s, "fit_rms_mm": self.fit_rms_mm}
+                "correlation_offset_s": self.correlation_offset_s, "fit_rms_mm": self.fit_rms_mm,
+                "runner_up_fit_rms_mm": self.runner_up_fit_rms_mm}
 
 
 def _smooth(x: np.ndarray, dt: float, sigma_s: float) -> np.ndarray:
@@ -110,8 +127,9 @@ def _smooth(x: np.ndarray, dt: float, sigma_s: float) -> np.ndarray:
     half = max(1, int(np.ceil(3 * sigma_s / dt)))
     k = np.exp(-0.5 * (np.arange(-half, half + 1) * dt / sigma_s) ** 2)
     ok = np.isfinite(x)
-    num = np.convolve(np.where(ok, x, 0.0), k, mode="same")
-    den = np.convolve(ok.astype(float), k, mode="same")
+    # "full" then the centre: "same" returns the kernel's length for a signal shorter than the kernel
+    num = np.convolve(np.where(ok, x, 0.0), k, mode="full")[half:half + len(x)]
+    den = np.convolve(ok.astype(float), k, mode="full")[half:half + len(x)]
     out = np.full_like(x, np.nan, dtype=np.float64)
     out[ok] = num[ok] / den[ok]
     return out
@@ -224,11 +242,19 @@ def estimate_clock_offset(marker_t: np.ndarray, marker_speed: np.ndarray, prior_
              and abs(offsets[i] - offsets[best]) >= config.runner_up_min_distance_s]
     runner = max(peaks, key=lambda i: c[i]) if peaks else None
     ambiguous = runner is not None and c[runner] >= config.ambiguous_ratio * c[best]
+    # the peaks worth refining: local maxima ranking near the best, each far enough from those kept
+    candidates = [best]
+    for i in sorted(peaks, key=lambda i: -c[i]):
+        if len(candidates) >= config.refine_peaks or c[i] < config.candidate_ratio * c[best]:
+            break
+        if all(abs(offsets[i] - offsets[j]) >= config.runner_up_min_distance_s for j in candidates):
+            candidates.append(i)
     return ClockOffsetEstimate(
         offset_s=float(offsets[best] + shift * dt), correlation=float(corr[best]), overlap_s=float(overlap[best]),
         runner_up_offset_s=None if runner is None else float(offsets[runner]),
         runner_up_correlation=None if runner is None else float(corr[runner]), ambiguous=bool(ambiguous),
-        weak=bool(corr[best] < config.min_correlation))
+        weak=bool(corr[best] < config.min_correlation),
+        candidates_s=(float(offsets[best] + shift * dt), *(float(offsets[i]) for i in candidates[1:])))
 
 
 def refine_clock_offset(model, positions: np.ndarray, visible: np.ndarray, stamps_ns: np.ndarray, up_axis: str, prior: BodyPrior,
@@ -274,7 +300,35 @@ def estimate_session_clock_offset(model, positions: np.ndarray, visible: np.ndar
     mt, ms = marker_motion_signal(positions, visible, stamps_ns, config.trim_fraction)
     pt, ps = prior_motion_signal(model, prior)
     est = estimate_clock_offset(mt, ms, pt, ps, config, centre_s)
-    if up_axis is None or not est.reliable or config.refine_half_width_s <= 0:
+    if up_axis is None or est.weak or config.refine_half_width_s <= 0:
         return est
-    offset, rms = refine_clock_offset(model, positions, visible, stamps_ns, up_axis, prior, est.offset_s, config)
-    return replace(est, offset_s=offset, correlation_offset_s=est.offset_s, fit_rms_mm=1000 * rms)
+    candidates = est.candidates_s
+    if len(candidates) > 1:
+        # judge the peaks on the same frames: those the video covers at every candidate's refinement
+        # (fits over different frames differ by more than the cycles do)
+        reach = config.refine_half_width_s
+        video = prior.stamps_ns[[0, -1]].astype(np.float64) * 1e-9
+        t = np.asarray(stamps_ns, np.float64) * 1e-9
+        common = (t >= video[0] + max(candidates) + reach) & (t <= video[1] + min(candidates) - reach)
+        if common.sum() < 2 or np.ptp(t[common]) < config.min_overlap_s:  # too little shared: the fit cannot judge
+            candidates = candidates[:1]
+            est = replace(est, ambiguous=True)
+        else:
+            positions, visible, stamps_ns = positions[common], visible[common], np.asarray(stamps_ns)[common]
+    fits, peaks = [], []
+    for c in candidates:
+        try:
+            fits.append(refine_clock_offset(model, positions, visible, stamps_ns, up_axis, prior, c, config))
+            peaks.append(c)
+        except ValueError:  # a peak so far out that the video covers no marker frame around it
+            continue
+    if not fits:
+        raise ValueError("refining the clock offset: the video covers no marker frame around any correlation peak")
+    order = sorted(range(len(fits)), key=lambda i: fits[i][1])
+    (offset, rms), other = fits[order[0]], (fits[order[1]][1] if len(fits) > 1 else None)
+    if other is not None:  # with candidates to judge between, the fit decides the ambiguity
+        ambiguous = other <= config.fit_ambiguous_ratio * rms
+    else:
+        ambiguous = est.ambiguous
+    return replace(est, offset_s=offset, correlation_offset_s=peaks[order[0]], fit_rms_mm=1000 * rms,
+                   runner_up_fit_rms_mm=None if other is None else 1000 * other, ambiguous=bool(ambiguous))

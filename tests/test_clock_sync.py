@@ -156,3 +156,11 @@ def test_bench_sync_counts_found_flagged_and_wrong_offsets(tmp_path, capsys):
         cmu = data["summary"][CMU_BVH.name]
         assert cmu["used_right"] == 1 and cmu["max_error_ms"] < 50, cmu
     assert main(["bench", "sync", "--motions", "no_such.bvh", "--quiet"]) == 2
+
+
+def test_a_video_shorter_than_the_smoothing_is_refused_not_crashed():
+    """A video overlapping the take by a fraction of a second (9 samples, shorter than the smoothing
+    kernel) gets the overlap error, not an index error."""
+    t = np.arange(0, 3, 1 / 60)
+    with pytest.raises(ValueError, match="cannot overlap"):
+        estimate_clock_offset(t, _bumpy(t, 0), t[:9], _bumpy(t[:9], 0))

@@ -61,7 +61,8 @@ def _one(model, directory: Path, truth: float) -> dict:
     peak = est.correlation_offset_s if est.correlation_offset_s is not None else est.offset_s
     return {"truth_s": truth, "status": "used" if est.reliable else ("weak" if est.weak else "ambiguous"),
             "offset_s": est.offset_s, "error_s": est.offset_s - truth, "peak_error_s": peak - truth,
-            "correlation": est.correlation, "seconds": time.perf_counter() - t0}
+            "correlation": est.correlation, "fit_rms_mm": est.fit_rms_mm, "runner_up_fit_rms_mm": est.runner_up_fit_rms_mm,
+            "seconds": time.perf_counter() - t0}
 
 
 def _summary(rows: list[dict], tolerance: float) -> dict:
