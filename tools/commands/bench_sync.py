@@ -116,12 +116,13 @@ def run(args) -> int:
         bar.close()
     summaries = {k: _summary(v, args.tolerance) for k, v in results.items()}
     total = _summary([r for v in results.values() for r in v], args.tolerance)
-    head = f"{'motion':28} {'sessions':>8} {'right':>6} {'wrong':>6} {'ambig.':>6} {'weak':>5}  {'refined ms (median/max)':>24}  {'peak ms':>11}"
+    head = (f"{'motion':28} {'sessions':>8} {'right':>6} {'wrong':>6} {'ambig.':>6} {'weak':>5} {'no overlap':>10}"
+            f"  {'refined ms (median/max)':>24}  {'peak ms':>11}")
     lines = [f"clock offset from the motion: used right (within {1000 * args.tolerance:.0f} ms) / used wrong / not used", head, "-" * len(head)]
     for k, s in [*summaries.items(), ("all", total)]:
         errs = (f"{s['median_error_ms']:.0f} / {s['max_error_ms']:.0f}", f"{s['median_peak_error_ms']:.0f} / {s['max_peak_error_ms']:.0f}") \
             if "median_error_ms" in s else ("-", "-")
-        lines.append(f"{k[:28]:28} {s['sessions']:>8} {s['used_right']:>6} {s['used_wrong']:>6} {s['ambiguous']:>6} {s['weak']:>5}"
+        lines.append(f"{k[:28]:28} {s['sessions']:>8} {s['used_right']:>6} {s['used_wrong']:>6} {s['ambiguous']:>6} {s['weak']:>5} {s['error']:>10}"
                      f"  {errs[0]:>24}  {errs[1]:>11}")
     seconds = time.perf_counter() - t0
     lines.append(f"sync errors {', '.join(f'{e:+.1f}' for e in errors)} s x {args.seeds} seeds, {args.duration:.0f} s sessions; "
