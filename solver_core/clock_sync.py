@@ -257,6 +257,14 @@ def estimate_clock_offset(marker_t: np.ndarray, marker_speed: np.ndarray, prior_
         candidates_s=(float(offsets[best] + shift * dt), *(float(offsets[i]) for i in candidates[1:])))
 
 
+def _covered(stamps_ns: np.ndarray, prior: BodyPrior, start_offset_s: float, end_offset_s: float) -> np.ndarray:
+    """(T,) bool: marker frames inside the video's span moved by ``start_offset_s`` at its start and
+    ``end_offset_s`` at its end (marker time = video time + offset)."""
+    video = prior.stamps_ns[[0, -1]].astype(np.float64) * 1e-9
+    t = np.asarray(stamps_ns, np.float64) * 1e-9
+    return (t >= video[0] + start_offset_s) & (t <= video[1] + end_offset_s)
+
+
 def refine_clock_offset(model, positions: np.ndarray, visible: np.ndarray, stamps_ns: np.ndarray, up_axis: str, prior: BodyPrior,
                         start_s: float, config: ClockSyncConfig = ClockSyncConfig()) -> tuple[float, float]:
     """Refine an offset by the marker fit of the prior body registered to the markers at each candidate.
@@ -271,9 +279,7 @@ def refine_clock_offset(model, positions: np.ndarray, visible: np.ndarray, stamp
     # only marker frames the video covers at every candidate: beyond its ends the prior holds its
     # last pose, which fits worse or better by chance
     reach = k * config.refine_step_s
-    video = prior.stamps_ns[[0, -1]].astype(np.float64) * 1e-9
-    t = np.asarray(stamps_ns, np.float64) * 1e-9
-    inside = (t >= video[0] + start_s + reach) & (t <= video[1] + start_s - reach)
+    inside = _covered(stamps_ns, prior, start_s + reach, start_s - reach)
     if inside.sum() < 2:
         raise ValueError("refining the clock offset: the video covers no marker frame at every candidate offset")
     positions, visible, stamps_ns = positions[inside], visible[inside], stamps_ns[inside]
@@ -307,9 +313,8 @@ def estimate_session_clock_offset(model, positions: np.ndarray, visible: np.ndar
         # judge the peaks on the same frames: those the video covers at every candidate's refinement
         # (fits over different frames differ by more than the cycles do)
         reach = config.refine_half_width_s
-        video = prior.stamps_ns[[0, -1]].astype(np.float64) * 1e-9
+        common = _covered(stamps_ns, prior, max(candidates) + reach, min(candidates) - reach)
         t = np.asarray(stamps_ns, np.float64) * 1e-9
-        common = (t >= video[0] + max(candidates) + reach) & (t <= video[1] + min(candidates) - reach)
         if common.sum() < 2 or np.ptp(t[common]) < config.min_overlap_s:  # too little shared: the fit cannot judge
             candidates = candidates[:1]
             est = replace(est, ambiguous=True)
