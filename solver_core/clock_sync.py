@@ -73,6 +73,13 @@ class ClockSyncConfig:
     candidate_ratio: float = 0.6
     refine_peaks: int = 3
     fit_ambiguous_ratio: float = 1.25
+    # The refined offset is used only if the fit at the refinement's ends is at least this many
+    # times the fit at the offset (``fit_contrast``): where the body fits about as well at any
+    # offset, the fit cannot confirm the correlation's peak, which may be chance.  Measured
+    # (bench sync, session 44): right offsets of the CMU motion 1.27-1.59, the walk 1.41-1.71;
+    # the offsets used but wrong 1.008 (a real capture, c3d.org, correlation 0.41) and 1.035 /
+    # 1.086 (the generated turn, whose right offsets also fit flat: 1.003-1.09).
+    min_fit_contrast: float = 1.15
     # Fraction trimmed at each end of the per-frame marker speeds before averaging.
     trim_fraction: float = 0.1
 
@@ -90,15 +97,22 @@ class ClockOffsetEstimate:
     fit_rms_mm: float | None = None  # the registered prior body's marker fit at offset_s (refined only)
     candidates_s: tuple[float, ...] = ()  # the correlation peaks worth refining, best first
     runner_up_fit_rms_mm: float | None = None  # the best fit among the other refined peaks
+    # how much worse the fit is at the refinement's ends (+-refine_half_width_s) than at offset_s:
+    # near 1 the fit does not locate the offset at all (refined only)
+    fit_contrast: float | None = None
+    flat_fit: bool = False  # fit_contrast below ``min_fit_contrast``: the body fits as well elsewhere
+    fit_points: tuple[tuple[float, float], ...] = ()  # every offset the fit scored: (offset s, RMS mm)
 
     @property
     def reliable(self) -> bool:
-        return not (self.ambiguous or self.weak)
+        return not (self.ambiguous or self.weak or self.flat_fit)
 
     def summary(self) -> str:
         text = f"{self.offset_s:+.3f} s ("
         if self.correlation_offset_s is not None:
             text += f"registered body fit {self.fit_rms_mm:.1f} mm"
+            if self.fit_contrast is not None:
+                text += f" ({self.fit_contrast:.2f}x worse at the refinement's ends)"
             if self.runner_up_fit_rms_mm is not None:
                 text += f" against {self.runner_up_fit_rms_mm:.1f} at the next peak"
             text += f"; motion correlation peak {self.correlation_offset_s:+.3f} s, "
@@ -108,6 +122,8 @@ class ClockOffsetEstimate:
         text += ")"
         if self.weak:
             text += " - WEAK: the streams share too little motion to trust it"
+        elif self.flat_fit:
+            text += " - FLAT: the body fits the markers about as well at other offsets; check the offset by eye"
         elif self.ambiguous:
             text += " - AMBIGUOUS: the motion repeats (gait?); a hop or clap at the start of the take pins it"
         return text
@@ -117,7 +133,8 @@ class ClockOffsetEstimate:
                 "runner_up_offset_s": self.runner_up_offset_s, "runner_up_correlation": self.runner_up_correlation,
                 "ambiguous": self.ambiguous, "weak": self.weak, "reliable": self.reliable,
                 "correlation_offset_s": self.correlation_offset_s, "fit_rms_mm": self.fit_rms_mm,
-                "runner_up_fit_rms_mm": self.runner_up_fit_rms_mm}
+                "runner_up_fit_rms_mm": self.runner_up_fit_rms_mm, "fit_contrast": self.fit_contrast, "flat_fit": self.flat_fit,
+                "fit_points": [list(p) for p in self.fit_points]}
 
 
 def _smooth(x: np.ndarray, dt: float, sigma_s: float) -> np.ndarray:
@@ -196,15 +213,30 @@ def _pearson(a: np.ndarray, b: np.ndarray) -> float:
     return float((a * b).sum() / den) if den > 0 else float("nan")
 
 
-def estimate_clock_offset(marker_t: np.ndarray, marker_speed: np.ndarray, prior_t: np.ndarray, prior_speed: np.ndarray,
-                          config: ClockSyncConfig = ClockSyncConfig(), centre_s: float = 0.0) -> ClockOffsetEstimate:
-    """The offset (marker time = video time + offset) that best aligns the two motion signals.
+@dataclass(frozen=True)
+class CorrelationCurve:
+    """The two motion signals on a common grid and their correlation at every offset searched.
 
-    marker_t, marker_speed: (N,) seconds on the marker clock and m/s (``marker_motion_signal``);
-    prior_t, prior_speed: (K,) seconds on the video clock and m/s (``prior_motion_signal``).
-    centre_s: where ``config.max_offset_s`` is measured from (e.g. the session's recorded offset).
-    Raises ValueError when no offset gives the required overlap or a signal does not move.
+    marker_t, marker_signal: (N,) seconds on the marker clock, smoothed m/s; prior_t, prior_signal:
+    (K,) seconds on the video clock; offsets_s, correlation, overlap_s: (O,) the offsets searched
+    (marker time = video time + offset), Pearson's r there (NaN: too little overlap or no motion)
+    and the seconds of overlap.
     """
+
+    marker_t: np.ndarray
+    marker_signal: np.ndarray
+    prior_t: np.ndarray
+    prior_signal: np.ndarray
+    offsets_s: np.ndarray
+    correlation: np.ndarray
+    overlap_s: np.ndarray
+
+
+def correlation_curve(marker_t: np.ndarray, marker_speed: np.ndarray, prior_t: np.ndarray, prior_speed: np.ndarray,
+                      config: ClockSyncConfig = ClockSyncConfig(), centre_s: float = 0.0) -> CorrelationCurve:
+    """Both signals smoothed on a ``1 / config.rate_hz`` grid, correlated at every offset that
+    overlaps them enough (see ``estimate_clock_offset`` for the arguments).  Raises ValueError when
+    no offset can give the required overlap."""
     dt = 1.0 / config.rate_hz
     grid_m = np.arange(marker_t[0], marker_t[-1] + 1e-9, dt)
     m = _smooth(np.interp(grid_m, marker_t, np.where(np.isfinite(marker_speed), marker_speed, np.nan)), dt, config.smooth_s)
@@ -227,6 +259,21 @@ def estimate_clock_offset(marker_t: np.ndarray, marker_speed: np.ndarray, prior_
         overlap[i] = ok.sum() * dt
         if overlap[i] >= need and np.ptp(m[ok]) > 0 and np.ptp(q[ok]) > 0:
             corr[i] = _pearson(m[ok], q[ok])
+    return CorrelationCurve(grid_m, m, grid_p, p, offsets, corr, overlap)
+
+
+def estimate_clock_offset(marker_t: np.ndarray, marker_speed: np.ndarray, prior_t: np.ndarray, prior_speed: np.ndarray,
+                          config: ClockSyncConfig = ClockSyncConfig(), centre_s: float = 0.0) -> ClockOffsetEstimate:
+    """The offset (marker time = video time + offset) that best aligns the two motion signals.
+
+    marker_t, marker_speed: (N,) seconds on the marker clock and m/s (``marker_motion_signal``);
+    prior_t, prior_speed: (K,) seconds on the video clock and m/s (``prior_motion_signal``).
+    centre_s: where ``config.max_offset_s`` is measured from (e.g. the session's recorded offset).
+    Raises ValueError when no offset gives the required overlap or a signal does not move.
+    """
+    dt = 1.0 / config.rate_hz
+    curve = correlation_curve(marker_t, marker_speed, prior_t, prior_speed, config, centre_s)
+    offsets, corr, overlap = curve.offsets_s, curve.correlation, curve.overlap_s
     if not np.isfinite(corr).any():
         raise ValueError("no offset gives an overlap where both streams move (a still subject, or no shared frames)")
     # the peak search runs on the ranking score; the correlations are what is reported
@@ -266,11 +313,13 @@ def _covered(stamps_ns: np.ndarray, prior: BodyPrior, start_offset_s: float, end
 
 
 def refine_clock_offset(model, positions: np.ndarray, visible: np.ndarray, stamps_ns: np.ndarray, up_axis: str, prior: BodyPrior,
-                        start_s: float, config: ClockSyncConfig = ClockSyncConfig()) -> tuple[float, float]:
+                        start_s: float, config: ClockSyncConfig = ClockSyncConfig()) -> tuple[float, float, float, tuple]:
     """Refine an offset by the marker fit of the prior body registered to the markers at each candidate.
 
     positions (T, M, 3) metres, visible (T, M), stamps_ns (T,) marker clock; prior on the video clock
-    (camera frame); start_s: the offset to search around.  Returns (offset_s, RMS fit metres there).
+    (camera frame); start_s: the offset to search around.  Returns (offset_s, RMS fit metres there,
+    contrast: the better of the two end offsets' fits over the best fit, 1 when the best is an end;
+    every offset scored as (offset_s, RMS metres) pairs in offset order).
     """
     from .baselines import prior_yaw_registration
     from .prior_preparation import prepare_prior
@@ -295,7 +344,18 @@ def refine_clock_offset(model, positions: np.ndarray, visible: np.ndarray, stamp
         a, b, c = rms[best - 1], rms[best], rms[best + 1]
         den = a - 2 * b + c
         shift = float(np.clip(0.5 * (a - c) / den, -0.5, 0.5)) if den > 0 else 0.0
-    return start_s + (best + shift) * config.refine_step_s, rms[best]
+    contrast = min(rms[-k], rms[k]) / rms[best] if k > 0 else 1.0
+    scored = tuple((start_s + i * config.refine_step_s, float(rms[i])) for i in sorted(rms))
+    return start_s + (best + shift) * config.refine_step_s, rms[best], contrast, scored
+
+
+def session_correlation_curve(model, positions: np.ndarray, visible: np.ndarray, stamps_ns: np.ndarray, prior: BodyPrior,
+                              config: ClockSyncConfig = ClockSyncConfig(), centre_s: float = 0.0) -> CorrelationCurve:
+    """``correlation_curve`` from the markers (T, M, 3) and a video-clock prior, as
+    ``estimate_session_clock_offset`` computes it (e.g. to draw it)."""
+    mt, ms = marker_motion_signal(positions, visible, stamps_ns, config.trim_fraction)
+    pt, ps = prior_motion_signal(model, prior)
+    return correlation_curve(mt, ms, pt, ps, config, centre_s)
 
 
 def estimate_session_clock_offset(model, positions: np.ndarray, visible: np.ndarray, stamps_ns: np.ndarray, prior: BodyPrior,
@@ -330,10 +390,12 @@ def estimate_session_clock_offset(model, positions: np.ndarray, visible: np.ndar
     if not fits:
         raise ValueError("refining the clock offset: the video covers no marker frame around any correlation peak")
     order = sorted(range(len(fits)), key=lambda i: fits[i][1])
-    (offset, rms), other = fits[order[0]], (fits[order[1]][1] if len(fits) > 1 else None)
+    (offset, rms, contrast, _), other = fits[order[0]], (fits[order[1]][1] if len(fits) > 1 else None)
     if other is not None:  # with candidates to judge between, the fit decides the ambiguity
         ambiguous = other <= config.fit_ambiguous_ratio * rms
     else:
         ambiguous = est.ambiguous
     return replace(est, offset_s=offset, correlation_offset_s=peaks[order[0]], fit_rms_mm=1000 * rms,
-                   runner_up_fit_rms_mm=None if other is None else 1000 * other, ambiguous=bool(ambiguous))
+                   runner_up_fit_rms_mm=None if other is None else 1000 * other, ambiguous=bool(ambiguous),
+                   fit_contrast=float(contrast), flat_fit=bool(contrast < config.min_fit_contrast),
+                   fit_points=tuple(sorted((o, 1000 * r) for f in fits for o, r in f[3])))

@@ -113,11 +113,23 @@ def test_solve_finds_a_phone_started_late_on_a_real_motion(tmp_path, capsys):
     session = tmp_path / "late_phone"
     make_session(session, SampleConfig(motion=str(CMU_BVH), duration_s=8.0, n_markers=40, seed=4, sync_error_s=1.3, video=False))
     out = tmp_path / "rr.npz"
-    assert main(["solve", str(session), "--method", "video-rr", "--clock-offset", "auto", "--out", str(out), "--quiet", "--json"]) == 0
+    plot = tmp_path / "sync.png"
+    assert main(["solve", str(session), "--method", "video-rr", "--clock-offset", "auto", "--sync-plot", str(plot), "--out", str(out),
+                 "--quiet", "--json"]) == 0
     captured = capsys.readouterr()
+    import cv2
+
+    image = cv2.imread(str(plot))
+    assert image is not None and image.shape[1] == 1000 and image.shape[0] > 400, "no sync plot written"
+    from uuomocap.sync_plot import BLUE, GREEN, ORANGE
+
+    for colour in (BLUE, ORANGE, GREEN):  # both signals and the offset found are drawn
+        assert (np.abs(image.astype(int) - colour).max(-1) < 10).sum() > 50, colour
+    assert main(["solve", str(session), "--sync-plot", str(plot), "--out", str(out), "--quiet"]) == 2  # nothing found to draw
     sync = json.loads(captured.out)["clock_sync"]
     assert abs(sync["offset_s"] - 1.3) < 0.03 and sync["reliable"] and sync["used_s"] == sync["offset_s"], sync
     assert abs(sync["correlation_offset_s"] - 1.3) < 0.15 and sync["fit_rms_mm"] > 0  # the peak, refined by the fit
+    assert sync["fit_contrast"] >= ClockSyncConfig().min_fit_contrast and not sync["flat_fit"]
     assert "clock offset: auto +1.2" in captured.err or "clock offset: auto +1.3" in captured.err
     # --write-offset records it in session.yaml (the rest kept), where replays and uuo-window read it
     from uuomocap.protocol.session import load_session
@@ -139,6 +151,35 @@ def test_solve_finds_a_phone_started_late_on_a_real_motion(tmp_path, capsys):
     assert "needs a video prior" in capsys.readouterr().err
 
 
+def test_an_offset_the_body_fit_cannot_locate_is_flagged_flat(tmp_path):
+    """Markers of the CMU motion against a video prior that articulates on its own (a random sway
+    about a held pose): the motion correlation finds some peak (its floor lowered here so it does not
+    stop there as WEAK), but the registered body fits about as well at every offset - FLAT, not used.
+    The same session with its own prior has a V-shaped fit around the peak."""
+    if not CMU_BVH.is_file():
+        pytest.skip(f"test motion absent: {CMU_BVH}")
+    from uuomocap.protocol.session import load_session
+    from uuomocap.solver_core.body_model import load_body_model
+    from uuomocap.solver_core.clock_sync import estimate_session_clock_offset
+    from uuomocap.solver_core.prior_preparation import prior_from_npz_arrays
+    from uuomocap.synth import SampleConfig, make_session
+
+    make_session(tmp_path / "s", SampleConfig(motion=str(CMU_BVH), duration_s=6.0, n_markers=40, seed=4, video=False))
+    s = load_session(tmp_path / "s", load_prior=True, load_gt=False)
+    model = load_body_model("open-low")
+    args = (model, s.markers.positions, s.markers.visible, s.markers.stamps_ns)
+    own = estimate_session_clock_offset(*args, prior_from_npz_arrays(s.prior), up_axis=s.up_axis)
+    assert own.reliable and abs(own.offset_s) < 0.05 and own.fit_contrast >= ClockSyncConfig().min_fit_contrast, own.summary()
+    rng = np.random.default_rng(0)
+    F = len(s.prior["stamps_ns"])
+    sway = np.cumsum(rng.normal(0, 0.02, (F, 23, 3)), axis=0)  # articulation that has nothing to do with the markers
+    unrelated = dict(s.prior, body_pose=np.asarray(s.prior["body_pose"])[:1].reshape(1, 23, 3) + sway)
+    config = replace(ClockSyncConfig(), min_correlation=0.0)
+    est = estimate_session_clock_offset(*args, prior_from_npz_arrays(unrelated), config, up_axis=s.up_axis)
+    assert est.flat_fit and not est.reliable and est.fit_contrast < config.min_fit_contrast, est.summary()
+    assert "FLAT" in est.summary() and est.to_dict()["flat_fit"]
+
+
 def test_bench_sync_counts_found_flagged_and_wrong_offsets(tmp_path, capsys):
     """`uuomocap bench sync` on the procedural walk (which repeats exactly: flagged, never used) and,
     when the shared data is here, the CMU motion (found within the tolerance)."""
@@ -151,7 +192,7 @@ def test_bench_sync_counts_found_flagged_and_wrong_offsets(tmp_path, capsys):
     assert "used right" in text and "walk" in text
     data = json.loads(out.read_text())
     walk = data["summary"]["walk"]
-    assert walk["sessions"] == 1 and walk["used_right"] == 0 and walk["used_wrong"] == 0 and walk["ambiguous"] + walk["weak"] == 1
+    assert walk["sessions"] == 1 and walk["used_right"] == 0 and walk["used_wrong"] == 0 and walk["ambiguous"] + walk["weak"] + walk["flat"] == 1
     if CMU_BVH.is_file():
         cmu = data["summary"][CMU_BVH.name]
         assert cmu["used_right"] == 1 and cmu["max_error_ms"] < 50, cmu

@@ -6,7 +6,8 @@ through ``sample from-capture``), and the offset is found from the motion alone
 (``solver_core.clock_sync``: the correlation of the body's articulation speed in the markers and in
 the simulated video prior, refined by the registered prior body's marker fit).  Printed per motion:
 how many offsets were found and used (right: within ``--tolerance``), used but wrong, and not used
-(ambiguous: the motion repeats; weak: too little motion), with the errors of the correlation's peak
+(ambiguous: the motion repeats; weak: too little motion; flat: the body fits about as well at other
+offsets), with the errors of the correlation's peak
 and of the refined offset.  The generator's procedural motions repeat exactly, so they are expected
 to be flagged, not found: give a recorded motion (``--motions take.bvh``) to measure the finding.
 """
@@ -59,9 +60,10 @@ def _one(model, directory: Path, truth: float) -> dict:
     except ValueError as exc:
         return {"truth_s": truth, "status": "error", "error": str(exc), "seconds": time.perf_counter() - t0}
     peak = est.correlation_offset_s if est.correlation_offset_s is not None else est.offset_s
-    return {"truth_s": truth, "status": "used" if est.reliable else ("weak" if est.weak else "ambiguous"),
+    status = "used" if est.reliable else ("weak" if est.weak else "flat" if est.flat_fit else "ambiguous")
+    return {"truth_s": truth, "status": status,
             "offset_s": est.offset_s, "error_s": est.offset_s - truth, "peak_error_s": peak - truth,
-            "correlation": est.correlation, "fit_rms_mm": est.fit_rms_mm, "runner_up_fit_rms_mm": est.runner_up_fit_rms_mm,
+            "correlation": est.correlation, "fit_rms_mm": est.fit_rms_mm, "fit_contrast": est.fit_contrast, "runner_up_fit_rms_mm": est.runner_up_fit_rms_mm,
             "seconds": time.perf_counter() - t0}
 
 
@@ -70,6 +72,7 @@ def _summary(rows: list[dict], tolerance: float) -> dict:
     right = [r for r in used if abs(r["error_s"]) <= tolerance]
     out = {"sessions": len(rows), "used_right": len(right), "used_wrong": len(used) - len(right),
            "ambiguous": sum(r["status"] == "ambiguous" for r in rows), "weak": sum(r["status"] == "weak" for r in rows),
+           "flat": sum(r["status"] == "flat" for r in rows),
            "error": sum(r["status"] == "error" for r in rows)}
     if right:
         err, peak = np.abs([r["error_s"] for r in right]) * 1000, np.abs([r["peak_error_s"] for r in right]) * 1000
@@ -116,13 +119,13 @@ def run(args) -> int:
         bar.close()
     summaries = {k: _summary(v, args.tolerance) for k, v in results.items()}
     total = _summary([r for v in results.values() for r in v], args.tolerance)
-    head = (f"{'motion':28} {'sessions':>8} {'right':>6} {'wrong':>6} {'ambig.':>6} {'weak':>5} {'no overlap':>10}"
+    head = (f"{'motion':28} {'sessions':>8} {'right':>6} {'wrong':>6} {'ambig.':>6} {'weak':>5} {'flat':>5} {'no overlap':>10}"
             f"  {'refined ms (median/max)':>24}  {'peak ms':>11}")
     lines = [f"clock offset from the motion: used right (within {1000 * args.tolerance:.0f} ms) / used wrong / not used", head, "-" * len(head)]
     for k, s in [*summaries.items(), ("all", total)]:
         errs = (f"{s['median_error_ms']:.0f} / {s['max_error_ms']:.0f}", f"{s['median_peak_error_ms']:.0f} / {s['max_peak_error_ms']:.0f}") \
             if "median_error_ms" in s else ("-", "-")
-        lines.append(f"{k[:28]:28} {s['sessions']:>8} {s['used_right']:>6} {s['used_wrong']:>6} {s['ambiguous']:>6} {s['weak']:>5} {s['error']:>10}"
+        lines.append(f"{k[:28]:28} {s['sessions']:>8} {s['used_right']:>6} {s['used_wrong']:>6} {s['ambiguous']:>6} {s['weak']:>5} {s['flat']:>5} {s['error']:>10}"
                      f"  {errs[0]:>24}  {errs[1]:>11}")
     seconds = time.perf_counter() - t0
     lines.append(f"sync errors {', '.join(f'{e:+.1f}' for e in errors)} s x {args.seeds} seeds, {args.duration:.0f} s sessions; "

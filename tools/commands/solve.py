@@ -40,6 +40,9 @@ def register(subparsers) -> None:
                              "it from the motion: how fast the body articulates, in the markers and in the video prior, "
                              "correlated over every offset; used when the peak is clear, otherwise the default stays "
                              "and the reason is printed (motion that repeats, e.g. steady gait, is ambiguous)")
+    parser.add_argument("--sync-plot", type=Path, metavar="PNG",
+                        help="with --clock-offset auto: draw the two motion signals aligned at the offset used, the "
+                             "correlation at every offset and the body fit around its peaks, to check the offset by eye")
     parser.add_argument("--write-offset", action="store_true",
                         help="record the clock offset this solve used (e.g. the one --clock-offset auto found) in "
                              "SESSION/session.yaml, so replays through the graph and --method uuo-window use it too; "
@@ -115,23 +118,30 @@ def _clock_offset(text: str):
         raise argparse.ArgumentTypeError(f"expected seconds or 'auto', got {text!r}") from None
 
 
-def _auto_clock_offset(md, prior_arrays: dict, body_model: str, recorded_s: float, up_axis: str) -> tuple[float, dict]:
+def _auto_clock_offset(md, prior_arrays: dict, body_model: str, recorded_s: float, up_axis: str,
+                       plot: Path | None = None) -> tuple[float, dict]:
     """The video->marker offset from the motion (``solver_core.clock_sync``); the recorded one when unclear."""
     from uuomocap.solver_core.body_model import load_solver_models
     from uuomocap.solver_core.clock_sync import estimate_session_clock_offset
     from uuomocap.solver_core.prior_preparation import prior_from_npz_arrays
 
     model_name = str(prior_arrays.get("body_model", body_model))
+    prior = prior_from_npz_arrays(prior_arrays)
     try:
         # the low-resolution model: the refinement registers its every vertex, as video-rr does
         _, model = load_solver_models(model_name if model_name in ("open-low", "open-full") else body_model)
-        est = estimate_session_clock_offset(model, md.positions, md.visible, md.stamps_ns, prior_from_npz_arrays(prior_arrays),
-                                            centre_s=recorded_s, up_axis=up_axis)
+        est = estimate_session_clock_offset(model, md.positions, md.visible, md.stamps_ns, prior, centre_s=recorded_s, up_axis=up_axis)
     except ValueError as exc:
         print(f"clock offset: auto failed ({exc}); keeping {recorded_s:+.3f} s", file=sys.stderr)
         return recorded_s, {"error": str(exc), "used_s": recorded_s}
     used = est.offset_s if est.reliable else recorded_s
     print(f"clock offset: auto {est.summary()}; " + ("using it" if est.reliable else f"keeping {recorded_s:+.3f} s"), file=sys.stderr)
+    if plot is not None:
+        from uuomocap.solver_core.clock_sync import session_correlation_curve
+        from uuomocap.sync_plot import write_sync_plot
+
+        curve = session_correlation_curve(model, md.positions, md.visible, md.stamps_ns, prior, centre_s=recorded_s)
+        print(f"clock offset: plot written to {write_sync_plot(plot, curve, est, used, recorded_s)}", file=sys.stderr)
     return used, {**est.to_dict(), "used_s": used}
 
 
@@ -204,9 +214,11 @@ def build_inputs(args):
     if args.clock_offset == "auto":
         if prior_arrays is None:
             raise UserError("--clock-offset auto needs a video prior (a session's prior.npz, --prior or --video)")
-        offset, clock_sync = _auto_clock_offset(md, prior_arrays, body_model, offset, up)
+        offset, clock_sync = _auto_clock_offset(md, prior_arrays, body_model, offset, up, args.sync_plot)
     elif args.clock_offset is not None:
         offset = float(args.clock_offset)
+    if args.sync_plot is not None and args.clock_offset != "auto":
+        raise UserError("--sync-plot draws what --clock-offset auto found: add --clock-offset auto")
     if args.write_offset:
         _write_offset(args, offset, clock_sync)
     prior = shape = None
