@@ -69,17 +69,20 @@ class ClockSyncConfig:
     # the motion does, and ``ambiguous`` says when it does not (the second fit within
     # fit_ambiguous_ratio of the best: on the bench's walk / run / turn the right offsets won by
     # 1.20-1.76x, the cycle-off ones by 1.10-1.21x).  The peaks are judged on the frames the video
-    # covers at all of them; fits over different frames differ by more than the cycles do.
+    # covers at all of them; fits over different frames differ by more than the cycles do.  More
+    # such peaks than refine_peaks is ``ambiguous`` too: the Hamner treadmill run peaks every step
+    # (0.35 s), and with the true one fourth the fit picked a step off by 1.38x (session 44).
     candidate_ratio: float = 0.6
     refine_peaks: int = 3
     fit_ambiguous_ratio: float = 1.25
-    # The refined offset is used only if the fit at the refinement's ends is at least this many
-    # times the fit at the offset (``fit_contrast``): where the body fits about as well at any
-    # offset, the fit cannot confirm the correlation's peak, which may be chance.  Measured
-    # (bench sync, session 44): right offsets of the CMU motion 1.27-1.59, the walk 1.41-1.71;
-    # the offsets used but wrong 1.008 (a real capture, c3d.org, correlation 0.41) and 1.035 /
-    # 1.086 (the generated turn, whose right offsets also fit flat: 1.003-1.09).
-    min_fit_contrast: float = 1.15
+    # The refined offset is used only if the registered body fits the markers at least this many
+    # times worse contrast_distance_s either side (``fit_contrast``): where it fits about as well at
+    # any offset, the fit cannot confirm the correlation's peak, which may be chance.  Measured
+    # (session 44): the one real capture's wrong offset (c3d.org, correlation 0.41, 1.7 s off) 1.05;
+    # right offsets 1.13-1.68, BlazePose's prior on the CMU renders 1.25-1.41.  At +-0.25 s the V is
+    # too shallow to tell (BlazePose 1.08-1.35).
+    contrast_distance_s: float = 0.5
+    min_fit_contrast: float = 1.10
     # Fraction trimmed at each end of the per-frame marker speeds before averaging.
     trim_fraction: float = 0.1
 
@@ -96,8 +99,9 @@ class ClockOffsetEstimate:
     correlation_offset_s: float | None = None  # the correlation's peak, when offset_s was refined by the fit
     fit_rms_mm: float | None = None  # the registered prior body's marker fit at offset_s (refined only)
     candidates_s: tuple[float, ...] = ()  # the correlation peaks worth refining, best first
+    unjudged_peaks: int = 0  # peaks as strong as those, beyond ``refine_peaks``: not refined, so the fit cannot rule them out
     runner_up_fit_rms_mm: float | None = None  # the best fit among the other refined peaks
-    # how much worse the fit is at the refinement's ends (+-refine_half_width_s) than at offset_s:
+    # how much worse the fit is contrast_distance_s either side of offset_s (the better side):
     # near 1 the fit does not locate the offset at all (refined only)
     fit_contrast: float | None = None
     flat_fit: bool = False  # fit_contrast below ``min_fit_contrast``: the body fits as well elsewhere
@@ -112,7 +116,7 @@ class ClockOffsetEstimate:
         if self.correlation_offset_s is not None:
             text += f"registered body fit {self.fit_rms_mm:.1f} mm"
             if self.fit_contrast is not None:
-                text += f" ({self.fit_contrast:.2f}x worse at the refinement's ends)"
+                text += f" ({self.fit_contrast:.2f}x worse either side)"
             if self.runner_up_fit_rms_mm is not None:
                 text += f" against {self.runner_up_fit_rms_mm:.1f} at the next peak"
             text += f"; motion correlation peak {self.correlation_offset_s:+.3f} s, "
@@ -134,7 +138,7 @@ class ClockOffsetEstimate:
                 "ambiguous": self.ambiguous, "weak": self.weak, "reliable": self.reliable,
                 "correlation_offset_s": self.correlation_offset_s, "fit_rms_mm": self.fit_rms_mm,
                 "runner_up_fit_rms_mm": self.runner_up_fit_rms_mm, "fit_contrast": self.fit_contrast, "flat_fit": self.flat_fit,
-                "fit_points": [list(p) for p in self.fit_points]}
+                "fit_points": [list(p) for p in self.fit_points], "unjudged_peaks": self.unjudged_peaks}
 
 
 def _smooth(x: np.ndarray, dt: float, sigma_s: float) -> np.ndarray:
@@ -292,16 +296,18 @@ def estimate_clock_offset(marker_t: np.ndarray, marker_speed: np.ndarray, prior_
     # the peaks worth refining: local maxima ranking near the best, each far enough from those kept
     candidates = [best]
     for i in sorted(peaks, key=lambda i: -c[i]):
-        if len(candidates) >= config.refine_peaks or c[i] < config.candidate_ratio * c[best]:
+        if c[i] < config.candidate_ratio * c[best]:
             break
         if all(abs(offsets[i] - offsets[j]) >= config.runner_up_min_distance_s for j in candidates):
             candidates.append(i)
+    unjudged = max(0, len(candidates) - config.refine_peaks)  # beyond the peaks the fit can afford to judge
+    candidates = candidates[:config.refine_peaks]
     return ClockOffsetEstimate(
         offset_s=float(offsets[best] + shift * dt), correlation=float(corr[best]), overlap_s=float(overlap[best]),
         runner_up_offset_s=None if runner is None else float(offsets[runner]),
         runner_up_correlation=None if runner is None else float(corr[runner]), ambiguous=bool(ambiguous),
         weak=bool(corr[best] < config.min_correlation),
-        candidates_s=(float(offsets[best] + shift * dt), *(float(offsets[i]) for i in candidates[1:])))
+        candidates_s=(float(offsets[best] + shift * dt), *(float(offsets[i]) for i in candidates[1:])), unjudged_peaks=unjudged)
 
 
 def _covered(stamps_ns: np.ndarray, prior: BodyPrior, start_offset_s: float, end_offset_s: float) -> np.ndarray:
@@ -313,12 +319,11 @@ def _covered(stamps_ns: np.ndarray, prior: BodyPrior, start_offset_s: float, end
 
 
 def refine_clock_offset(model, positions: np.ndarray, visible: np.ndarray, stamps_ns: np.ndarray, up_axis: str, prior: BodyPrior,
-                        start_s: float, config: ClockSyncConfig = ClockSyncConfig()) -> tuple[float, float, float, tuple]:
+                        start_s: float, config: ClockSyncConfig = ClockSyncConfig()) -> tuple[float, float, tuple]:
     """Refine an offset by the marker fit of the prior body registered to the markers at each candidate.
 
     positions (T, M, 3) metres, visible (T, M), stamps_ns (T,) marker clock; prior on the video clock
     (camera frame); start_s: the offset to search around.  Returns (offset_s, RMS fit metres there,
-    contrast: the better of the two end offsets' fits over the best fit, 1 when the best is an end;
     every offset scored as (offset_s, RMS metres) pairs in offset order).
     """
     from .baselines import prior_yaw_registration
@@ -344,9 +349,33 @@ def refine_clock_offset(model, positions: np.ndarray, visible: np.ndarray, stamp
         a, b, c = rms[best - 1], rms[best], rms[best + 1]
         den = a - 2 * b + c
         shift = float(np.clip(0.5 * (a - c) / den, -0.5, 0.5)) if den > 0 else 0.0
-    contrast = min(rms[-k], rms[k]) / rms[best] if k > 0 else 1.0
     scored = tuple((start_s + i * config.refine_step_s, float(rms[i])) for i in sorted(rms))
-    return start_s + (best + shift) * config.refine_step_s, rms[best], contrast, scored
+    return start_s + (best + shift) * config.refine_step_s, rms[best], scored
+
+
+def fit_contrast(model, positions: np.ndarray, visible: np.ndarray, stamps_ns: np.ndarray, up_axis: str, prior: BodyPrior,
+                 offset_s: float, config: ClockSyncConfig = ClockSyncConfig()) -> tuple[float, tuple] | None:
+    """How much better the registered prior body fits the markers at ``offset_s`` than
+    ``config.contrast_distance_s`` either side: the better side's RMS over the centre's, on the marker
+    frames the video covers at all three (arguments as ``refine_clock_offset``).  Returns (contrast,
+    ((offset_s, RMS metres), ...) of the two sides), or None when the video covers too few such frames.
+    """
+    from .baselines import prior_yaw_registration
+    from .prior_preparation import prepare_prior
+
+    far = config.contrast_distance_s
+    inside = _covered(stamps_ns, prior, offset_s + far, offset_s - far)
+    t = np.asarray(stamps_ns, np.float64)[inside] * 1e-9
+    if inside.sum() < 2 or np.ptp(t) < config.min_overlap_s:
+        return None
+    positions, visible, stamps_ns = positions[inside], visible[inside], np.asarray(stamps_ns)[inside]
+    rms = {}
+    for o in (offset_s, offset_s - far, offset_s + far):  # every yaw start at each: the body may turn in a second
+        world, shape = prepare_prior(prior, up_axis, stamps_ns, o)
+        rms[o] = prior_yaw_registration(positions, visible, up_axis, world, shape, model, (0.0, 90.0, 180.0, 270.0),
+                                        config.refine_frames)[1]
+    return min(rms[offset_s - far], rms[offset_s + far]) / rms[offset_s], ((offset_s - far, rms[offset_s - far]),
+                                                                           (offset_s + far, rms[offset_s + far]))
 
 
 def session_correlation_curve(model, positions: np.ndarray, visible: np.ndarray, stamps_ns: np.ndarray, prior: BodyPrior,
@@ -390,12 +419,18 @@ def estimate_session_clock_offset(model, positions: np.ndarray, visible: np.ndar
     if not fits:
         raise ValueError("refining the clock offset: the video covers no marker frame around any correlation peak")
     order = sorted(range(len(fits)), key=lambda i: fits[i][1])
-    (offset, rms, contrast, _), other = fits[order[0]], (fits[order[1]][1] if len(fits) > 1 else None)
-    if other is not None:  # with candidates to judge between, the fit decides the ambiguity
+    (offset, rms, _), other = fits[order[0]], (fits[order[1]][1] if len(fits) > 1 else None)
+    contrast = fit_contrast(model, positions, visible, stamps_ns, up_axis, prior, offset, config)
+    if contrast is None:  # a take too short to look that far: the refinement's own ends
+        ends = dict(fits[order[0]][2])
+        contrast = (min(ends[min(ends)], ends[max(ends)]) / rms, ())
+    if est.unjudged_peaks:  # a peak the fit did not see might fit better still (a treadmill run: one every step)
+        ambiguous = True
+    elif other is not None:  # with candidates to judge between, the fit decides the ambiguity
         ambiguous = other <= config.fit_ambiguous_ratio * rms
     else:
         ambiguous = est.ambiguous
     return replace(est, offset_s=offset, correlation_offset_s=peaks[order[0]], fit_rms_mm=1000 * rms,
                    runner_up_fit_rms_mm=None if other is None else 1000 * other, ambiguous=bool(ambiguous),
-                   fit_contrast=float(contrast), flat_fit=bool(contrast < config.min_fit_contrast),
-                   fit_points=tuple(sorted((o, 1000 * r) for f in fits for o, r in f[3])))
+                   fit_contrast=float(contrast[0]), flat_fit=bool(contrast[0] < config.min_fit_contrast),
+                   fit_points=tuple(sorted((o, 1000 * r) for o, r in (*(p for f in fits for p in f[2]), *contrast[1]))))

@@ -34,6 +34,9 @@ def register_bench(subparsers) -> None:
     p.add_argument("--sync-errors", default="-2.0,-0.4,0.7,1.3,3.0", help="seconds the video really starts off the recorded offset")
     p.add_argument("--seeds", type=int, default=3, help="seeds per motion and sync error (default 3)")
     p.add_argument("--duration", type=float, default=8.0, help="seconds per generated session (default 8)")
+    p.add_argument("--video", action="store_true",
+                   help="render each session's video and sync BlazePose's prior from it instead of the simulated prior "
+                        "(the estimator a user runs on a phone video; ~20 s more per session)")
     p.add_argument("--tolerance", type=float, default=0.05, help="a used offset within this many seconds is right (default 0.05)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--json", nargs="?", const="-", metavar="FILE", help="write results as JSON to FILE (or stdout)")
@@ -47,16 +50,22 @@ def _floats(text: str) -> list[float]:
         raise UserError(f"--sync-errors: expected seconds separated by commas, got {text!r}") from None
 
 
-def _one(model, directory: Path, truth: float) -> dict:
+def _one(model, directory: Path, truth: float, video: bool = False) -> dict:
     from uuomocap.protocol.session import load_session
     from uuomocap.solver_core.clock_sync import estimate_session_clock_offset
     from uuomocap.solver_core.prior_preparation import prior_from_npz_arrays
 
-    s = load_session(directory, load_prior=True, load_gt=False)
+    s = load_session(directory, load_prior=not video, load_gt=False)
+    if video:
+        from uuomocap.video_methods import session_blazepose_prior
+
+        prior_arrays = session_blazepose_prior(directory)[0]
+    else:
+        prior_arrays = s.prior
     t0 = time.perf_counter()
     try:
         est = estimate_session_clock_offset(model, s.markers.positions, s.markers.visible, s.markers.stamps_ns,
-                                            prior_from_npz_arrays(s.prior), centre_s=s.clock_offset_s, up_axis=s.up_axis)
+                                            prior_from_npz_arrays(prior_arrays), centre_s=s.clock_offset_s, up_axis=s.up_axis)
     except ValueError as exc:
         return {"truth_s": truth, "status": "error", "error": str(exc), "seconds": time.perf_counter() - t0}
     peak = est.correlation_offset_s if est.correlation_offset_s is not None else est.offset_s
@@ -64,6 +73,7 @@ def _one(model, directory: Path, truth: float) -> dict:
     return {"truth_s": truth, "status": status,
             "offset_s": est.offset_s, "error_s": est.offset_s - truth, "peak_error_s": peak - truth,
             "correlation": est.correlation, "fit_rms_mm": est.fit_rms_mm, "fit_contrast": est.fit_contrast, "runner_up_fit_rms_mm": est.runner_up_fit_rms_mm,
+            "ambiguous": est.ambiguous, "weak": est.weak, "flat_fit": est.flat_fit,
             "seconds": time.perf_counter() - t0}
 
 
@@ -109,9 +119,10 @@ def run(args) -> int:
     with tempfile.TemporaryDirectory(prefix="uuomocap-bench-sync-") as tmp:
         for i, (kind, name, seed, e) in enumerate(jobs):
             d = Path(tmp) / f"s{i}"
-            cfg = SampleConfig(motion=name if kind == "motion" else "walk", duration_s=args.duration, seed=seed, sync_error_s=e, video=False)
+            cfg = SampleConfig(motion=name if kind == "motion" else "walk", duration_s=args.duration, seed=seed, sync_error_s=e,
+                               video=args.video)
             (make_session if kind == "motion" else make_capture_session)(*((d, cfg) if kind == "motion" else (name, d, cfg)))
-            row = {"seed": seed, **_one(model, d, e)}
+            row = {"seed": seed, **_one(model, d, e, args.video)}
             results.setdefault(Path(name).name, []).append(row)
             if bar is not None:
                 bar.update(1)
@@ -128,8 +139,8 @@ def run(args) -> int:
         lines.append(f"{k[:28]:28} {s['sessions']:>8} {s['used_right']:>6} {s['used_wrong']:>6} {s['ambiguous']:>6} {s['weak']:>5} {s['flat']:>5} {s['error']:>10}"
                      f"  {errs[0]:>24}  {errs[1]:>11}")
     seconds = time.perf_counter() - t0
-    lines.append(f"sync errors {', '.join(f'{e:+.1f}' for e in errors)} s x {args.seeds} seeds, {args.duration:.0f} s sessions; "
-                 f"{seconds:.0f} s on 1 thread")
+    lines.append(f"sync errors {', '.join(f'{e:+.1f}' for e in errors)} s x {args.seeds} seeds, {args.duration:.0f} s sessions, "
+                 + ("BlazePose's prior from the rendered video; " if args.video else "simulated prior; ") + f"{seconds:.0f} s on 1 thread")
     emit_bench(args, {"summary": summaries, "all": total, "sessions": results, "tolerance_s": args.tolerance,
                       "sync_errors_s": errors, "seconds": seconds}, "\n".join(lines))
     return 0 if total["used_wrong"] == 0 else 1
