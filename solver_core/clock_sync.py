@@ -398,6 +398,7 @@ def estimate_session_clock_offset(model, positions: np.ndarray, visible: np.ndar
     if up_axis is None or est.weak or config.refine_half_width_s <= 0:
         return est
     candidates = est.candidates_s
+    every_frame = (positions, visible, stamps_ns)  # the contrast looks at the winner alone, on all it covers
     if len(candidates) > 1:
         # judge the peaks on the same frames: those the video covers at every candidate's refinement
         # (fits over different frames differ by more than the cycles do)
@@ -420,7 +421,7 @@ def estimate_session_clock_offset(model, positions: np.ndarray, visible: np.ndar
         raise ValueError("refining the clock offset: the video covers no marker frame around any correlation peak")
     order = sorted(range(len(fits)), key=lambda i: fits[i][1])
     (offset, rms, _), other = fits[order[0]], (fits[order[1]][1] if len(fits) > 1 else None)
-    contrast = fit_contrast(model, positions, visible, stamps_ns, up_axis, prior, offset, config)
+    contrast = fit_contrast(model, *every_frame, up_axis, prior, offset, config)
     if contrast is None:  # a take too short to look that far: the refinement's own ends
         ends = dict(fits[order[0]][2])
         contrast = (min(ends[min(ends)], ends[max(ends)]) / rms, ())
