@@ -69,11 +69,13 @@ class ClockSyncConfig:
     # the motion does, and ``ambiguous`` says when it does not (the second fit within
     # fit_ambiguous_ratio of the best: on the bench's walk / run / turn the right offsets won by
     # 1.20-1.76x, the cycle-off ones by 1.10-1.21x).  The peaks are judged on the frames the video
-    # covers at all of them; fits over different frames differ by more than the cycles do.  More
-    # such peaks than refine_peaks is ``ambiguous`` too: the Hamner treadmill run peaks every step
-    # (0.35 s), and with the true one fourth the fit picked a step off by 1.38x (session 44).
+    # covers at all of them; fits over different frames differ by more than the cycles do.  Further
+    # such peaks are each checked by one fit at their centre (up to max_unjudged_checks; more is a
+    # periodic motion, ``ambiguous``): the Hamner treadmill run peaks every step (0.35 s), and with
+    # the true one fourth the fit picked a step off by 1.38x (session 44).
     candidate_ratio: float = 0.6
     refine_peaks: int = 3
+    max_unjudged_checks: int = 4
     fit_ambiguous_ratio: float = 1.25
     # The refined offset is used only if the registered body fits the markers at least this many
     # times worse contrast_distance_s either side (``fit_contrast``): where it fits about as well at
@@ -99,7 +101,9 @@ class ClockOffsetEstimate:
     correlation_offset_s: float | None = None  # the correlation's peak, when offset_s was refined by the fit
     fit_rms_mm: float | None = None  # the registered prior body's marker fit at offset_s (refined only)
     candidates_s: tuple[float, ...] = ()  # the correlation peaks worth refining, best first
-    unjudged_peaks: int = 0  # peaks as strong as those, beyond ``refine_peaks``: not refined, so the fit cannot rule them out
+    # correlation peaks as strong as the candidates, beyond ``refine_peaks``: not refined, each checked
+    # by one fit at its centre against the winner's on the frames the video covers at both
+    unjudged_peaks_s: tuple[float, ...] = ()
     runner_up_fit_rms_mm: float | None = None  # the best fit among the other refined peaks
     # how much worse the fit is contrast_distance_s either side of offset_s (the better side):
     # near 1 the fit does not locate the offset at all (refined only)
@@ -138,7 +142,7 @@ class ClockOffsetEstimate:
                 "ambiguous": self.ambiguous, "weak": self.weak, "reliable": self.reliable,
                 "correlation_offset_s": self.correlation_offset_s, "fit_rms_mm": self.fit_rms_mm,
                 "runner_up_fit_rms_mm": self.runner_up_fit_rms_mm, "fit_contrast": self.fit_contrast, "flat_fit": self.flat_fit,
-                "fit_points": [list(p) for p in self.fit_points], "unjudged_peaks": self.unjudged_peaks}
+                "fit_points": [list(p) for p in self.fit_points], "unjudged_peaks_s": list(self.unjudged_peaks_s)}
 
 
 def _smooth(x: np.ndarray, dt: float, sigma_s: float) -> np.ndarray:
@@ -300,14 +304,14 @@ def estimate_clock_offset(marker_t: np.ndarray, marker_speed: np.ndarray, prior_
             break
         if all(abs(offsets[i] - offsets[j]) >= config.runner_up_min_distance_s for j in candidates):
             candidates.append(i)
-    unjudged = max(0, len(candidates) - config.refine_peaks)  # beyond the peaks the fit can afford to judge
+    unjudged = tuple(float(offsets[i]) for i in candidates[config.refine_peaks:])  # beyond what the refinement can afford
     candidates = candidates[:config.refine_peaks]
     return ClockOffsetEstimate(
         offset_s=float(offsets[best] + shift * dt), correlation=float(corr[best]), overlap_s=float(overlap[best]),
         runner_up_offset_s=None if runner is None else float(offsets[runner]),
         runner_up_correlation=None if runner is None else float(corr[runner]), ambiguous=bool(ambiguous),
         weak=bool(corr[best] < config.min_correlation),
-        candidates_s=(float(offsets[best] + shift * dt), *(float(offsets[i]) for i in candidates[1:])), unjudged_peaks=unjudged)
+        candidates_s=(float(offsets[best] + shift * dt), *(float(offsets[i]) for i in candidates[1:])), unjudged_peaks_s=unjudged)
 
 
 def _covered(stamps_ns: np.ndarray, prior: BodyPrior, start_offset_s: float, end_offset_s: float) -> np.ndarray:
@@ -378,6 +382,28 @@ def fit_contrast(model, positions: np.ndarray, visible: np.ndarray, stamps_ns: n
                                                                            (offset_s + far, rms[offset_s + far]))
 
 
+def _an_unjudged_peak_fits(model, positions: np.ndarray, visible: np.ndarray, stamps_ns: np.ndarray, up_axis: str,
+                           prior: BodyPrior, offset_s: float, peaks_s: tuple[float, ...], config: ClockSyncConfig) -> bool:
+    """True when any of ``peaks_s`` fits (at its centre) within ``fit_ambiguous_ratio`` of ``offset_s``,
+    both on the frames the video covers at the two, or when they share too little to tell."""
+    from .baselines import prior_yaw_registration
+    from .prior_preparation import prepare_prior
+
+    if len(peaks_s) > config.max_unjudged_checks:  # a peak every step (a treadmill): periodic, no need to look
+        return True
+    t = np.asarray(stamps_ns, np.float64) * 1e-9
+    for peak in peaks_s:
+        both = _covered(stamps_ns, prior, max(peak, offset_s), min(peak, offset_s))
+        if both.sum() < 2 or np.ptp(t[both]) < config.min_overlap_s:
+            return True
+        rms = [prior_yaw_registration(positions[both], visible[both], up_axis,
+                                      *prepare_prior(prior, up_axis, np.asarray(stamps_ns)[both], o), model,
+                                      (0.0, 90.0, 180.0, 270.0), config.refine_frames)[1] for o in (offset_s, peak)]
+        if rms[1] <= config.fit_ambiguous_ratio * rms[0]:
+            return True
+    return False
+
+
 def session_correlation_curve(model, positions: np.ndarray, visible: np.ndarray, stamps_ns: np.ndarray, prior: BodyPrior,
                               config: ClockSyncConfig = ClockSyncConfig(), centre_s: float = 0.0) -> CorrelationCurve:
     """``correlation_curve`` from the markers (T, M, 3) and a video-clock prior, as
@@ -425,12 +451,16 @@ def estimate_session_clock_offset(model, positions: np.ndarray, visible: np.ndar
     if contrast is None:  # a take too short to look that far: the refinement's own ends
         ends = dict(fits[order[0]][2])
         contrast = (min(ends[min(ends)], ends[max(ends)]) / rms, ())
-    if est.unjudged_peaks:  # a peak the fit did not see might fit better still (a treadmill run: one every step)
-        ambiguous = True
-    elif other is not None:  # with candidates to judge between, the fit decides the ambiguity
+    # a peak whose refinement slid to within runner_up_min_distance_s of the winner is the winner's
+    # own minimum seen from its side (BlazePose's prior: a peak 0.34 s off refined to 0.08 s off)
+    rivals = [fits[i][1] for i in order[1:] if abs(fits[i][0] - offset) >= config.runner_up_min_distance_s]
+    other = rivals[0] if rivals else None
+    if other is not None:  # with candidates to judge between, the fit decides the ambiguity
         ambiguous = other <= config.fit_ambiguous_ratio * rms
     else:
-        ambiguous = est.ambiguous
+        ambiguous = est.ambiguous and len(fits) == 1
+    if not ambiguous and est.unjudged_peaks_s:  # could a peak the refinement left out fit as well?
+        ambiguous = _an_unjudged_peak_fits(model, *every_frame, up_axis, prior, offset, est.unjudged_peaks_s, config)
     return replace(est, offset_s=offset, correlation_offset_s=peaks[order[0]], fit_rms_mm=1000 * rms,
                    runner_up_fit_rms_mm=None if other is None else 1000 * other, ambiguous=bool(ambiguous),
                    fit_contrast=float(contrast[0]), flat_fit=bool(contrast[0] < config.min_fit_contrast),

@@ -50,7 +50,7 @@ def test_repeating_motion_is_ambiguous_and_a_still_subject_is_weak():
     assert est.ambiguous and not est.reliable and abs(abs(est.runner_up_offset_s - est.offset_s) % 1.1) < 0.05
     assert "AMBIGUOUS" in est.summary()
     # a peak every stride, all alike: more than the fit refines, and it says how many it left unjudged
-    assert len(est.candidates_s) == ClockSyncConfig().refine_peaks and est.unjudged_peaks >= 2, est
+    assert len(est.candidates_s) == ClockSyncConfig().refine_peaks and len(est.unjudged_peaks_s) >= 2, est
     rng = np.random.default_rng(3)  # a subject standing still: both signals are sensor noise
     still = estimate_clock_offset(t, 0.01 * rng.random(len(t)), t, 0.01 * rng.random(len(t)))
     assert still.weak and not still.reliable and "WEAK" in still.summary()
