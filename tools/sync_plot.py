@@ -111,8 +111,9 @@ def write_sync_plot(path: str | Path, curve, estimate, used_s: float, recorded_s
         y = bottom.px(o[0], value)[1]
         cv2.putText(img, f"{value:.2f}", (MARGIN_L - 40, y + 4), FONT, 0.4, BLACK, 1, cv2.LINE_AA)
     cv2.putText(img, "motion correlation", (MARGIN_L, bottom.y1 - 6), FONT, 0.42, BLACK, 1, cv2.LINE_AA)
-    for c in estimate.candidates_s[1:]:
-        bottom.vline(c, GREY, "other peak", row=2)
+    for c in estimate.candidates_s:  # the correlation peaks the fit judged and did not pick
+        if estimate.correlation_offset_s is None or abs(c - estimate.correlation_offset_s) > 1e-6:
+            bottom.vline(c, GREY, "other peak", row=2)
     bottom.vline(recorded_s, RED, f"recorded {recorded_s:+.3f}", row=1)
     bottom.vline(estimate.offset_s, GREEN, f"found {estimate.offset_s:+.3f}", thickness=2)
     if estimate.fit_points:  # the fit's scale on the right
