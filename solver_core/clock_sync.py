@@ -18,6 +18,10 @@ Periodic motion (gait) correlates again one cycle away: the runner-up peak is re
 the best, and ``ambiguous`` says when it comes close; ``weak`` says when even the best peak is
 low (a near-still take).  Two unrelated smooth signals can still correlate by chance (0.6 was
 seen), so the summary always carries the numbers.
+
+``estimate_session_clock_offset`` then lets the body decide: around the best peaks the prior body
+is registered to the markers (``refine_clock_offset``), the best fit wins, and a fit that is not
+clearly worse half a second either side (``fit_contrast``) cannot confirm the peak: ``flat_fit``.
 """
 
 from __future__ import annotations
