@@ -326,6 +326,20 @@ def _covered(stamps_ns: np.ndarray, prior: BodyPrior, start_offset_s: float, end
     return (t >= video[0] + start_offset_s) & (t <= video[1] + end_offset_s)
 
 
+ALL_YAW_STARTS = (0.0, 90.0, 180.0, 270.0)
+
+
+def _registered_fit(model, positions: np.ndarray, visible: np.ndarray, stamps_ns: np.ndarray, up_axis: str, prior: BodyPrior,
+                    offset_s: float, frames: int, yaw_starts: tuple[float, ...] = ALL_YAW_STARTS) -> tuple[float, float]:
+    """(yaw radians, RMS metres) of the video-clock prior, moved by ``offset_s`` onto the marker
+    frames and registered to the markers by ``baselines.prior_yaw_registration`` on ``frames`` of them."""
+    from .baselines import prior_yaw_registration
+    from .prior_preparation import prepare_prior
+
+    world, shape = prepare_prior(prior, up_axis, stamps_ns, offset_s)
+    return prior_yaw_registration(positions, visible, up_axis, world, shape, model, yaw_starts, frames)
+
+
 def refine_clock_offset(model, positions: np.ndarray, visible: np.ndarray, stamps_ns: np.ndarray, up_axis: str, prior: BodyPrior,
                         start_s: float, config: ClockSyncConfig = ClockSyncConfig()) -> tuple[float, float, tuple]:
     """Refine an offset by the marker fit of the prior body registered to the markers at each candidate.
@@ -334,9 +348,6 @@ def refine_clock_offset(model, positions: np.ndarray, visible: np.ndarray, stamp
     (camera frame); start_s: the offset to search around.  Returns (offset_s, RMS fit metres there,
     every offset scored as (offset_s, RMS metres) pairs in offset order).
     """
-    from .baselines import prior_yaw_registration
-    from .prior_preparation import prepare_prior
-
     k = int(round(config.refine_half_width_s / config.refine_step_s))
     # only marker frames the video covers at every candidate: beyond its ends the prior holds its
     # last pose, which fits worse or better by chance
@@ -346,10 +357,10 @@ def refine_clock_offset(model, positions: np.ndarray, visible: np.ndarray, stamp
         raise ValueError("refining the clock offset: the video covers no marker frame at every candidate offset")
     positions, visible, stamps_ns = positions[inside], visible[inside], stamps_ns[inside]
     order = sorted(range(-k, k + 1), key=abs)  # the centre first: its four-start yaw serves the rest
-    rms, yaw_starts = {}, (0.0, 90.0, 180.0, 270.0)
+    rms, yaw_starts = {}, ALL_YAW_STARTS
     for i in order:
-        world, shape = prepare_prior(prior, up_axis, stamps_ns, start_s + i * config.refine_step_s)
-        yaw, rms[i] = prior_yaw_registration(positions, visible, up_axis, world, shape, model, yaw_starts, config.refine_frames)
+        yaw, rms[i] = _registered_fit(model, positions, visible, stamps_ns, up_axis, prior, start_s + i * config.refine_step_s,
+                                      config.refine_frames, yaw_starts)
         yaw_starts = (float(np.degrees(yaw)),)  # a fraction of a second does not turn the body
     best = min(rms, key=rms.get)
     shift = 0.0
@@ -368,9 +379,6 @@ def fit_contrast(model, positions: np.ndarray, visible: np.ndarray, stamps_ns: n
     frames the video covers at all three (arguments as ``refine_clock_offset``).  Returns (contrast,
     ((offset_s, RMS metres), ...) of the two sides), or None when the video covers too few such frames.
     """
-    from .baselines import prior_yaw_registration
-    from .prior_preparation import prepare_prior
-
     far = config.contrast_distance_s
     inside = _covered(stamps_ns, prior, offset_s + far, offset_s - far)
     t = np.asarray(stamps_ns, np.float64)[inside] * 1e-9
@@ -379,9 +387,7 @@ def fit_contrast(model, positions: np.ndarray, visible: np.ndarray, stamps_ns: n
     positions, visible, stamps_ns = positions[inside], visible[inside], np.asarray(stamps_ns)[inside]
     rms = {}
     for o in (offset_s, offset_s - far, offset_s + far):  # every yaw start at each: the body may turn in a second
-        world, shape = prepare_prior(prior, up_axis, stamps_ns, o)
-        rms[o] = prior_yaw_registration(positions, visible, up_axis, world, shape, model, (0.0, 90.0, 180.0, 270.0),
-                                        config.refine_frames)[1]
+        rms[o] = _registered_fit(model, positions, visible, stamps_ns, up_axis, prior, o, config.refine_frames)[1]
     return min(rms[offset_s - far], rms[offset_s + far]) / rms[offset_s], ((offset_s - far, rms[offset_s - far]),
                                                                            (offset_s + far, rms[offset_s + far]))
 
@@ -390,9 +396,6 @@ def _an_unjudged_peak_fits(model, positions: np.ndarray, visible: np.ndarray, st
                            prior: BodyPrior, offset_s: float, peaks_s: tuple[float, ...], config: ClockSyncConfig) -> bool:
     """True when any of ``peaks_s`` fits (at its centre) within ``fit_ambiguous_ratio`` of ``offset_s``,
     both on the frames the video covers at the two, or when they share too little to tell."""
-    from .baselines import prior_yaw_registration
-    from .prior_preparation import prepare_prior
-
     if len(peaks_s) > config.max_unjudged_checks:  # a peak every step (a treadmill): periodic, no need to look
         return True
     t = np.asarray(stamps_ns, np.float64) * 1e-9
@@ -400,9 +403,8 @@ def _an_unjudged_peak_fits(model, positions: np.ndarray, visible: np.ndarray, st
         both = _covered(stamps_ns, prior, max(peak, offset_s), min(peak, offset_s))
         if both.sum() < 2 or np.ptp(t[both]) < config.min_overlap_s:
             return True
-        rms = [prior_yaw_registration(positions[both], visible[both], up_axis,
-                                      *prepare_prior(prior, up_axis, np.asarray(stamps_ns)[both], o), model,
-                                      (0.0, 90.0, 180.0, 270.0), config.refine_frames)[1] for o in (offset_s, peak)]
+        rms = [_registered_fit(model, positions[both], visible[both], np.asarray(stamps_ns)[both], up_axis, prior, o,
+                               config.refine_frames)[1] for o in (offset_s, peak)]
         if rms[1] <= config.fit_ambiguous_ratio * rms[0]:
             return True
     return False
