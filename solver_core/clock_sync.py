@@ -283,8 +283,12 @@ def estimate_clock_offset(marker_t: np.ndarray, marker_speed: np.ndarray, prior_
     centre_s: where ``config.max_offset_s`` is measured from (e.g. the session's recorded offset).
     Raises ValueError when no offset gives the required overlap or a signal does not move.
     """
+    return _estimate_from_curve(correlation_curve(marker_t, marker_speed, prior_t, prior_speed, config, centre_s), config)
+
+
+def _estimate_from_curve(curve: CorrelationCurve, config: ClockSyncConfig) -> ClockOffsetEstimate:
+    """The best peak of ``curve``, its rivals and the candidates worth refining."""
     dt = 1.0 / config.rate_hz
-    curve = correlation_curve(marker_t, marker_speed, prior_t, prior_speed, config, centre_s)
     offsets, corr, overlap = curve.offsets_s, curve.correlation, curve.overlap_s
     if not np.isfinite(corr).any():
         raise ValueError("no offset gives an overlap where both streams move (a still subject, or no shared frames)")
@@ -424,9 +428,7 @@ def estimate_session_clock_offset(model, positions: np.ndarray, visible: np.ndar
                                   up_axis: str | None = None) -> ClockOffsetEstimate:
     """``estimate_clock_offset`` from the markers (T, M, 3) and a video-clock prior, in one call; with
     ``up_axis`` (the markers'), a clear peak is then refined by ``refine_clock_offset``."""
-    mt, ms = marker_motion_signal(positions, visible, stamps_ns, config.trim_fraction)
-    pt, ps = prior_motion_signal(model, prior)
-    est = estimate_clock_offset(mt, ms, pt, ps, config, centre_s)
+    est = _estimate_from_curve(session_correlation_curve(model, positions, visible, stamps_ns, prior, config, centre_s), config)
     if up_axis is None or est.weak or config.refine_half_width_s <= 0:
         return est
     candidates = est.candidates_s
@@ -452,7 +454,7 @@ def estimate_session_clock_offset(model, positions: np.ndarray, visible: np.ndar
     if not fits:
         raise ValueError("refining the clock offset: the video covers no marker frame around any correlation peak")
     order = sorted(range(len(fits)), key=lambda i: fits[i][1])
-    (offset, rms, _), other = fits[order[0]], (fits[order[1]][1] if len(fits) > 1 else None)
+    offset, rms, _ = fits[order[0]]
     contrast = fit_contrast(model, *every_frame, up_axis, prior, offset, config)
     if contrast is None:  # a take too short to look that far: the refinement's own ends
         ends = dict(fits[order[0]][2])
