@@ -315,6 +315,12 @@ _UNIT_LONG = {  # long names; C3D stores UNITS in a fixed 4-char field so 'meter
 }
 
 
+def unit_metres(text: str | None) -> float | None:
+    """Metres per unit for a units string as found in a file ('mm' -> 0.001), None if unknown."""
+    unit = parse_units(text)
+    return None if unit is None else _UNIT_METRES.get(unit)
+
+
 def parse_units(text: str | None) -> str | None:
     """Canonical unit ('mm', 'cm', 'm', ...) for a units string as found in a file, None if unknown.
 

@@ -41,6 +41,12 @@ def register(subparsers) -> None:
                         "marker_faces and marker_bary on the solve's body model")
     p.add_argument("--max-distance-mm", type=float, default=None,
                    help="furthest a marker may sit from a layout point and take its name (default 100)")
+    p.add_argument("--fill-gaps", action="store_true",
+                   help="fill each marker's gaps (seen before and after) from the solved body: the marker's point on the body, "
+                        "corrected by its residual at the gap's edges; in a C3D the filled samples carry residual 0 "
+                        "(C3D: computed, not measured)")
+    p.add_argument("--max-gap", type=float, default=None, metavar="S",
+                   help="with --fill-gaps: leave gaps longer than S seconds open (default: fill every gap the body covers)")
     add_json_flag(p)
     p.set_defaults(func=_handler)
 
@@ -103,9 +109,14 @@ def run_label(args) -> tuple[dict, str]:
     named = name_markers(model, betas, faces, pred["marker_bary"], parts, l_faces, l_bary, l_names,
                          MarkerNamingConfig(max_distance_m=cap_mm / 1000.0))
     positions = np.where(md.visible[..., None], md.positions, np.nan)
+    residuals, fill_info = None, None
+    if args.fill_gaps:
+        positions, residuals, fill_info = _fill_gaps(args, pred, pred_path, model, md)
+    elif args.max_gap is not None:
+        raise UserError("--max-gap needs --fill-gaps")
     try:
         if out.suffix.lower() == ".c3d":
-            write_c3d(out, positions, md.rate_hz, labels=list(named.names), up_axis=md.up_axis)
+            write_c3d(out, positions, md.rate_hz, labels=list(named.names), up_axis=md.up_axis, residuals=residuals)
         else:
             write_trc(out, positions, md.rate_hz, labels=list(named.names), up_axis=md.up_axis)
     except (OSError, ValueError) as exc:
@@ -119,6 +130,12 @@ def run_label(args) -> tuple[dict, str]:
     how = (f"{named.named_count} named from {args.layout} ({len(l_names)} names), {md.n_markers - named.named_count} by segment"
            if l_names else "named by segment")
     lines = [f"wrote {out}: {md.n_frames} frames @ {md.rate_hz:g} Hz, {md.n_markers} markers; {how}"]
+    if fill_info is not None:
+        info["gap_fill"] = fill_info
+        lines.append(f"filled {fill_info['filled_gaps']} of {fill_info['gaps']} gaps from the solved body "
+                     f"({fill_info['filled_samples']} samples, {100 * fill_info['visible_before']:.1f} -> "
+                     f"{100 * fill_info['visible_after']:.1f} % of the samples); left open: {fill_info['left_open_long']} longer than "
+                     f"--max-gap, {fill_info['left_open_unsolved']} where the body was not solved or the marker has no point")
     if out.suffix.lower() == ".trc" and md.up_axis != "+y":  # markerio.write_trc: OpenSim reads every TRC +y up
         info["written_up_axis"] = "+y"
         lines.append(f"(the TRC is +y up, turned from the capture's {md.up_axis}, as OpenSim reads it)")
@@ -132,6 +149,50 @@ def run_label(args) -> tuple[dict, str]:
               + (f" {r['layout_distance_mm']:5.1f} mm from the layout point" if r["layout_distance_mm"] is not None else "")
               for r in rows]
     return info, "\n".join(lines)
+
+
+def _fill_gaps(args, pred: dict, pred_path: Path, model, md) -> tuple[np.ndarray, np.ndarray, dict]:
+    """``--fill-gaps``: (positions with the bounded gaps filled from the body, residuals for write_c3d
+    (the file's own, in mm, where it has them; 0 on filled samples), what was filled)."""
+    from uuomocap.protocol.markerio import unit_metres
+    from uuomocap.solver_core.gap_fill import body_fill, bounded_gaps, solved_marker_positions
+
+    if args.max_gap is not None and not args.max_gap > 0:
+        raise UserError(f"--max-gap {args.max_gap}: give a positive number of seconds")
+    for k in ("poses", "trans"):
+        if k not in pred:
+            raise UserError(f"{pred_path}: missing {k!r} - --fill-gaps needs the solved poses")
+    poses, trans = np.asarray(pred["poses"], np.float64), np.asarray(pred["trans"], np.float64)
+    betas = np.asarray(pred["frame_betas"] if "frame_betas" in pred else pred["betas"], np.float64)
+    n = poses.shape[0]
+    if poses.shape != (n, 72) or trans.shape != (n, 3) or (betas.ndim == 2 and betas.shape[0] != n):
+        raise UserError(f"{pred_path}: poses {poses.shape}, trans {trans.shape}, betas {betas.shape} do not describe one solve")
+    rows = np.arange(n)
+    if n != md.n_frames:  # a solve of part of the take: its frames by their stamps
+        if "stamps_ns" not in pred:
+            raise UserError(f"{pred_path}: {n} solved frames for {md.n_frames} marker frames and no stamps_ns to match them")
+        rows = np.searchsorted(md.stamps_ns, np.asarray(pred["stamps_ns"], np.int64))
+        ok = (rows < md.n_frames) & (np.abs(md.stamps_ns[np.minimum(rows, md.n_frames - 1)] - np.asarray(pred["stamps_ns"])) < 1e6)
+        rows, poses, trans = rows[ok], poses[ok], trans[ok]
+        betas = betas[ok] if betas.ndim == 2 else betas
+    predicted = np.full(md.positions.shape, np.nan)
+    predicted[rows] = solved_marker_positions(model, betas, poses, trans, pred["marker_faces"], pred["marker_bary"])
+    max_frames = None if args.max_gap is None else int(np.floor(args.max_gap * md.rate_hz + 1e-9))
+    positions, filled = body_fill(md.positions, md.visible, predicted, max_frames)
+    gaps = bounded_gaps(md.visible)
+    long = sum(max_frames is not None and g.frames > max_frames for g in gaps)
+    n_filled = sum(bool(filled[g.start, g.marker]) for g in gaps)
+    residuals = np.zeros(md.positions.shape[:2])
+    if md.residuals is not None:  # keep the file's own (a measured sample's residual is positive; 0 = computed)
+        to_mm = 1000.0 * (unit_metres(md.units_found) or 1e-3)  # the reader assumes mm when the file names none
+        residuals = np.where(md.visible, np.clip(md.residuals, 0, None) * to_mm, 0.0)
+    total = md.visible.size
+    return positions, residuals, {
+        "gaps": len(gaps), "filled_gaps": n_filled, "filled_samples": int(filled.sum()), "left_open_long": int(long),
+        "left_open_unsolved": len(gaps) - n_filled - int(long), "max_gap_s": args.max_gap,
+        "visible_before": float(md.visible.sum() / total), "visible_after": float((md.visible | filled).sum() / total),
+        "filled": [{"column": g.marker, "first_frame": g.start, "frames": g.frames} for g in gaps if filled[g.start, g.marker]],
+    }
 
 
 def _read_npz(path: Path, context: str = "") -> dict:

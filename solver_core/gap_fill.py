@@ -1,0 +1,162 @@
+"""Filling a marker's gaps from the solved body (beyond the paper: what a labelled pipeline does next).
+
+A capture loses markers to occlusion; a technician fills the gaps before the data goes on.
+Trajectory fills (linear, spline) know nothing of the body and drift on gaps longer than a few
+frames.  The solve knows where each marker rides (its face + barycentric point and the 9.5 mm
+offset) and where the body is in every frame, so it predicts the marker through the gap.  The
+prediction is off by the marker's fit residual (skin motion, the point's error), which changes
+slowly: the fill adds to the prediction the residual measured at the gap's two edges, blended
+linearly across it, so the filled path joins the measured one without a step at either end
+(the idea of a "pattern" or "rigid body" fill, with the body as the donor).
+
+``solved_marker_positions`` predicts, ``body_fill`` fills; ``linear_fill`` and ``spline_fill``
+are the trajectory fills a user would otherwise run (``uuomocap bench gap-fill`` compares them).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+
+@dataclass(frozen=True)
+class GapSpan:
+    """One gap of one marker column: frames ``start`` .. ``stop - 1`` missing, seen at
+    ``start - 1`` and at ``stop`` (gaps at the take's ends are not spans: nothing bounds them)."""
+
+    marker: int
+    start: int
+    stop: int
+
+    @property
+    def frames(self) -> int:
+        return self.stop - self.start
+
+
+def bounded_gaps(visible: np.ndarray) -> list[GapSpan]:
+    """Every gap bounded by seen frames on both sides.  visible: (T, M) bool."""
+    vis = np.asarray(visible, bool)
+    spans = []
+    for m in range(vis.shape[1]):
+        seen = np.flatnonzero(vis[:, m])
+        if seen.size < 2:
+            continue
+        jumps = np.flatnonzero(np.diff(seen) > 1)
+        spans += [GapSpan(m, int(seen[j]) + 1, int(seen[j + 1])) for j in jumps]
+    return spans
+
+
+def solved_marker_positions(model, betas: np.ndarray, poses: np.ndarray, trans: np.ndarray, marker_faces: np.ndarray,
+                            marker_bary: np.ndarray, offset_m: float = 0.0095, chunk: int = 256) -> np.ndarray:
+    """Where the solved body puts each marker: its surface point plus ``offset_m`` along the smooth
+    skin normal (the offline IK's marker model, ``inverse_kinematics.predicted_markers``).
+
+    betas: (B,) or (T, B) a shape per frame (streamed solves); poses: (T, 72) world axis-angle;
+    trans: (T, 3) metres; marker_faces: (M,) face ids, -1 = no point; marker_bary: (M, 3).
+    Returns (T, M, 3) metres, NaN for unassigned markers and for frames the solve left empty.
+    """
+    from uuomocap.solver_core import lbs
+    from uuomocap.solver_core.body_params import MarkerAttachment
+    from uuomocap.solver_core.inverse_kinematics import (offset_directions, posed_marker_frames,
+                                                          smooth_normals_in_face_frames)
+
+    poses, trans = np.asarray(poses, np.float64), np.asarray(trans, np.float64)
+    faces = np.asarray(marker_faces, np.int64)
+    betas = np.asarray(betas, np.float64)
+    T, M = poses.shape[0], faces.shape[0]
+    out = np.full((T, M, 3), np.nan)
+    assigned = faces >= 0
+    if not assigned.any():
+        return out
+    frame_betas = betas if betas.ndim == 2 else np.broadcast_to(betas, (T, betas.shape[-1]))
+    solved = np.isfinite(poses).all(1) & np.isfinite(trans).all(1) & np.isfinite(frame_betas).all(1)
+    att = MarkerAttachment(torch.as_tensor(faces), torch.as_tensor(np.asarray(marker_bary, np.float64)), torch.zeros(M))
+    corners = lbs.SurfacePoints.from_vertex_ids(model.faces[att.face_ids[att.assigned]].reshape(-1))
+    bary = att.bary[att.assigned].float()
+    rows = np.flatnonzero(solved)
+    smooth_cache: dict[bytes, torch.Tensor] = {}  # a streamed solve changes shape a few times per take
+    with torch.no_grad():
+        for s in range(0, rows.size, chunk):
+            r = rows[s:s + chunk]
+            b = torch.as_tensor(frame_betas[r], dtype=torch.float32)
+            o = lbs.forward(model, b, torch.as_tensor(poses[r], dtype=torch.float32), torch.as_tensor(trans[r], dtype=torch.float32),
+                            points=corners)
+            c = o.vertices.reshape(len(r), -1, 3, 3)
+            pts, nrm = posed_marker_frames(c, bary)
+            # one smooth normal per distinct shape (it is computed in the rest pose of that shape)
+            offsets = torch.empty_like(pts)
+            keys = [frame_betas[i].tobytes() for i in r]
+            for key in dict.fromkeys(keys):
+                if key not in smooth_cache:
+                    smooth_cache[key] = smooth_normals_in_face_frames(model, torch.as_tensor(np.frombuffer(key).copy()), att)
+                sel = torch.as_tensor([k == key for k in keys])
+                offsets[sel] = offset_directions(c[sel], nrm[sel], smooth_cache[key])
+            out[r[:, None], np.flatnonzero(assigned)[None, :]] = (pts + offset_m * offsets).double().numpy()
+    return out
+
+
+def body_fill(positions: np.ndarray, visible: np.ndarray, predicted: np.ndarray,
+              max_gap_frames: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Fill every bounded gap (``bounded_gaps``) from the body's prediction, corrected by the marker's
+    residual at the gap's edges (linear blend from the frame before to the frame after).
+
+    positions: (T, M, 3) metres (anything where not visible); visible: (T, M) bool; predicted:
+    (T, M, 3) from ``solved_marker_positions``.  A gap is left open when it is longer than
+    ``max_gap_frames`` or the body is not predicted on every one of its frames and both edges.
+    Returns (positions with the filled samples, NaN where still missing; filled (T, M) bool).
+    """
+    pos = np.where(np.asarray(visible, bool)[..., None], np.asarray(positions, np.float64), np.nan)
+    filled = np.zeros(pos.shape[:2], bool)
+    for g in bounded_gaps(visible):
+        if max_gap_frames is not None and g.frames > max_gap_frames:
+            continue
+        pred = predicted[g.start - 1:g.stop + 1, g.marker]
+        if not np.isfinite(pred).all():
+            continue
+        before = pos[g.start - 1, g.marker] - pred[0]
+        after = pos[g.stop, g.marker] - pred[-1]
+        w = (np.arange(1, g.frames + 1) / (g.frames + 1))[:, None]
+        pos[g.start:g.stop, g.marker] = pred[1:-1] + (1 - w) * before + w * after
+        filled[g.start:g.stop, g.marker] = True
+    return pos, filled
+
+
+def linear_fill(positions: np.ndarray, visible: np.ndarray, max_gap_frames: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Straight lines across bounded gaps (the simplest trajectory fill).  Same arrays as ``body_fill``."""
+    pos = np.where(np.asarray(visible, bool)[..., None], np.asarray(positions, np.float64), np.nan)
+    filled = np.zeros(pos.shape[:2], bool)
+    for g in bounded_gaps(visible):
+        if max_gap_frames is not None and g.frames > max_gap_frames:
+            continue
+        w = (np.arange(1, g.frames + 1) / (g.frames + 1))[:, None]
+        pos[g.start:g.stop, g.marker] = (1 - w) * pos[g.start - 1, g.marker] + w * pos[g.stop, g.marker]
+        filled[g.start:g.stop, g.marker] = True
+    return pos, filled
+
+
+def spline_fill(positions: np.ndarray, visible: np.ndarray, max_gap_frames: int | None = None,
+                context_frames: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """A cubic spline through the seen samples within ``context_frames`` either side of each bounded
+    gap (the spline fill of labelling tools; scipy's not-a-knot ``CubicSpline``).  Same arrays as
+    ``body_fill``."""
+    from scipy.interpolate import CubicSpline
+
+    vis = np.asarray(visible, bool)
+    pos = np.where(vis[..., None], np.asarray(positions, np.float64), np.nan)
+    filled = np.zeros(pos.shape[:2], bool)
+    T = pos.shape[0]
+    for g in bounded_gaps(vis):
+        if max_gap_frames is not None and g.frames > max_gap_frames:
+            continue
+        lo, hi = max(0, g.start - context_frames), min(T, g.stop + context_frames)
+        t = np.flatnonzero(vis[lo:hi, g.marker]) + lo
+        # samples already filled are not measurements: only seen ones carry the spline
+        if t.size < 4:  # too few for a cubic: a line
+            w = (np.arange(1, g.frames + 1) / (g.frames + 1))[:, None]
+            pos[g.start:g.stop, g.marker] = (1 - w) * pos[g.start - 1, g.marker] + w * pos[g.stop, g.marker]
+        else:
+            pos[g.start:g.stop, g.marker] = CubicSpline(t, pos[t, g.marker], axis=0)(np.arange(g.start, g.stop))
+        filled[g.start:g.stop, g.marker] = True
+    return pos, filled
