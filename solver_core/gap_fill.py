@@ -49,27 +49,31 @@ def bounded_gaps(visible: np.ndarray) -> list[GapSpan]:
 
 
 def solved_marker_positions(model, betas: np.ndarray, poses: np.ndarray, trans: np.ndarray, marker_faces: np.ndarray,
-                            marker_bary: np.ndarray, offset_m: float = 0.0095, chunk: int = 256) -> np.ndarray:
+                            marker_bary: np.ndarray, offset_m: float = 0.0095, chunk: int = 256,
+                            return_frames: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Where the solved body puts each marker: its surface point plus ``offset_m`` along the smooth
     skin normal (the offline IK's marker model, ``inverse_kinematics.predicted_markers``).
 
     betas: (B,) or (T, B) a shape per frame (streamed solves); poses: (T, 72) world axis-angle;
     trans: (T, 3) metres; marker_faces: (M,) face ids, -1 = no point; marker_bary: (M, 3).
-    Returns (T, M, 3) metres, NaN for unassigned markers and for frames the solve left empty.
+    Returns (T, M, 3) metres, NaN for unassigned markers and for frames the solve left empty; with
+    ``return_frames`` also (T, M, 3, 3) the posed frame of each marker's face (rows: edge, in-plane
+    perpendicular, normal; ``inverse_kinematics.triangle_frames``), for ``body_fill``.
     """
     from uuomocap.solver_core import lbs
     from uuomocap.solver_core.body_params import MarkerAttachment
     from uuomocap.solver_core.inverse_kinematics import (offset_directions, posed_marker_frames,
-                                                          smooth_normals_in_face_frames)
+                                                          smooth_normals_in_face_frames, triangle_frames)
 
     poses, trans = np.asarray(poses, np.float64), np.asarray(trans, np.float64)
     faces = np.asarray(marker_faces, np.int64)
     betas = np.asarray(betas, np.float64)
     T, M = poses.shape[0], faces.shape[0]
     out = np.full((T, M, 3), np.nan)
+    frames = np.full((T, M, 3, 3), np.nan) if return_frames else None
     assigned = faces >= 0
     if not assigned.any():
-        return out
+        return (out, frames) if return_frames else out
     frame_betas = betas if betas.ndim == 2 else np.broadcast_to(betas, (T, betas.shape[-1]))
     solved = np.isfinite(poses).all(1) & np.isfinite(trans).all(1) & np.isfinite(frame_betas).all(1)
     att = MarkerAttachment(torch.as_tensor(faces), torch.as_tensor(np.asarray(marker_bary, np.float64)), torch.zeros(M))
@@ -94,17 +98,23 @@ def solved_marker_positions(model, betas: np.ndarray, poses: np.ndarray, trans: 
                 sel = torch.as_tensor([k == key for k in keys])
                 offsets[sel] = offset_directions(c[sel], nrm[sel], smooth_cache[key])
             out[r[:, None], np.flatnonzero(assigned)[None, :]] = (pts + offset_m * offsets).double().numpy()
-    return out
+            if frames is not None:
+                frames[r[:, None], np.flatnonzero(assigned)[None, :]] = triangle_frames(c).double().numpy()
+    return (out, frames) if return_frames else out
 
 
 def body_fill(positions: np.ndarray, visible: np.ndarray, predicted: np.ndarray,
-              max_gap_frames: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+              max_gap_frames: int | None = None, frames: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Fill every bounded gap (``bounded_gaps``) from the body's prediction, corrected by the marker's
     residual at the gap's edges (linear blend from the frame before to the frame after).
 
     positions: (T, M, 3) metres (anything where not visible); visible: (T, M) bool; predicted:
-    (T, M, 3) from ``solved_marker_positions``.  A gap is left open when it is longer than
-    ``max_gap_frames`` or the body is not predicted on every one of its frames and both edges.
+    (T, M, 3) from ``solved_marker_positions``.  frames: its (T, M, 3, 3) face frames, or None.
+    With frames the residual is blended in the frame of the marker's face, so it turns with the
+    body segment through the gap: a marker whose solved point is 2 cm off rides the segment at
+    that offset, where a residual fixed in the world would stay behind as the limb turns.
+    A gap is left open when it is longer than ``max_gap_frames`` or the body is not predicted on
+    every one of its frames and both edges.
     Returns (positions with the filled samples, NaN where still missing; filled (T, M) bool).
     """
     pos = np.where(np.asarray(visible, bool)[..., None], np.asarray(positions, np.float64), np.nan)
@@ -118,7 +128,12 @@ def body_fill(positions: np.ndarray, visible: np.ndarray, predicted: np.ndarray,
         before = pos[g.start - 1, g.marker] - pred[0]
         after = pos[g.stop, g.marker] - pred[-1]
         w = (np.arange(1, g.frames + 1) / (g.frames + 1))[:, None]
-        pos[g.start:g.stop, g.marker] = pred[1:-1] + (1 - w) * before + w * after
+        if frames is None:
+            pos[g.start:g.stop, g.marker] = pred[1:-1] + (1 - w) * before + w * after
+        else:
+            f = frames[g.start - 1:g.stop + 1, g.marker]  # (n+2, 3, 3) rows = axes: local = f @ world
+            local = (1 - w) * (f[0] @ before) + w * (f[-1] @ after)
+            pos[g.start:g.stop, g.marker] = pred[1:-1] + np.einsum("tij,ti->tj", f[1:-1], local)
         filled[g.start:g.stop, g.marker] = True
     return pos, filled
 

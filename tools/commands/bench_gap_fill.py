@@ -26,7 +26,7 @@ import numpy as np
 
 from uuomocap.commands import UserError, emit_bench
 
-FILLS = ("body", "body (no edge correction)", "spline", "linear")
+FILLS = ("body", "body (world-fixed residual)", "body (no edge correction)", "spline", "linear")
 
 
 def register_bench(subparsers) -> None:
@@ -96,8 +96,10 @@ def _one(directory: Path, lengths_s: list[float], per_length: int, seed: int) ->
     solve_s = time.perf_counter() - t0
     poses, trans, betas, _ = _params_arrays(model, result.params, inputs.up_axis)
     att = result.attachment
-    predicted = solved_marker_positions(model, betas, poses, trans, att.face_ids.numpy(), att.bary.double().numpy())
-    fills = {"body": body_fill(truth, visible, predicted)[0],
+    predicted, frames = solved_marker_positions(model, betas, poses, trans, att.face_ids.numpy(), att.bary.double().numpy(),
+                                                return_frames=True)
+    fills = {"body": body_fill(truth, visible, predicted, frames=frames)[0],
+             "body (world-fixed residual)": body_fill(truth, visible, predicted)[0],
              "body (no edge correction)": np.where(visible[..., None], truth, predicted),
              "spline": spline_fill(truth, visible)[0], "linear": linear_fill(truth, visible)[0]}
     return {"rate_hz": rate, "frames": int(truth.shape[0]), "markers": int(truth.shape[1]), "gaps": len(cuts), "solve_s": solve_s,

@@ -175,10 +175,11 @@ def _fill_gaps(args, pred: dict, pred_path: Path, model, md) -> tuple[np.ndarray
         ok = (rows < md.n_frames) & (np.abs(md.stamps_ns[np.minimum(rows, md.n_frames - 1)] - np.asarray(pred["stamps_ns"])) < 1e6)
         rows, poses, trans = rows[ok], poses[ok], trans[ok]
         betas = betas[ok] if betas.ndim == 2 else betas
-    predicted = np.full(md.positions.shape, np.nan)
-    predicted[rows] = solved_marker_positions(model, betas, poses, trans, pred["marker_faces"], pred["marker_bary"])
+    predicted, frames = np.full(md.positions.shape, np.nan), np.full((*md.positions.shape, 3), np.nan)
+    predicted[rows], frames[rows] = solved_marker_positions(model, betas, poses, trans, pred["marker_faces"], pred["marker_bary"],
+                                                            return_frames=True)
     max_frames = None if args.max_gap is None else int(np.floor(args.max_gap * md.rate_hz + 1e-9))
-    positions, filled = body_fill(md.positions, md.visible, predicted, max_frames)
+    positions, filled = body_fill(md.positions, md.visible, predicted, max_frames, frames)
     gaps = bounded_gaps(md.visible)
     long = sum(max_frames is not None and g.frames > max_frames for g in gaps)
     n_filled = sum(bool(filled[g.start, g.marker]) for g in gaps)
