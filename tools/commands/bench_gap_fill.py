@@ -5,8 +5,10 @@ marker was seen (``--gaps-per-length`` per length, at random, each bounded by se
 unlabelled markers with those gaps are solved (``uuo``, the offline staged solver), and the cut
 samples are filled back by
 
-* ``body``: the solved body's marker prediction, corrected by the residual at the gap's edges
-  (``solver_core.gap_fill.body_fill``, what ``uuomocap label --fill-gaps`` writes);
+* ``body``: the solved body's marker prediction (smoothed along time), corrected by the residual
+  carried in from the gap's edges with its slope there (``solver_core.gap_fill.body_fill``, what
+  ``uuomocap label --fill-gaps`` writes);
+* ``body as solved, linear blend``: the prediction as solved, the edge residuals blended linearly;
 * ``body (no edge correction)``: the prediction alone;
 * ``spline``: a cubic spline through the seen samples 10 frames either side (labelling tools' fill);
 * ``linear``: a straight line across the gap.
@@ -26,7 +28,7 @@ import numpy as np
 
 from uuomocap.commands import UserError, emit_bench
 
-FILLS = ("body", "body (world-fixed residual)", "body (no edge correction)", "spline", "linear")
+FILLS = ("body", "body as solved, linear blend", "body (no edge correction)", "spline", "linear")
 
 
 def register_bench(subparsers) -> None:
@@ -98,8 +100,8 @@ def _one(directory: Path, lengths_s: list[float], per_length: int, seed: int) ->
     att = result.attachment
     predicted, frames = solved_marker_positions(model, betas, poses, trans, att.face_ids.numpy(), att.bary.double().numpy(),
                                                 return_frames=True)
-    fills = {"body": body_fill(truth, visible, predicted, frames=frames)[0],
-             "body (world-fixed residual)": body_fill(truth, visible, predicted)[0],
+    fills = {"body": body_fill(truth, visible, predicted, frames, rate)[0],
+             "body as solved, linear blend": body_fill(truth, visible, predicted, frames)[0],
              "body (no edge correction)": np.where(visible[..., None], truth, predicted),
              "spline": spline_fill(truth, visible)[0], "linear": linear_fill(truth, visible)[0]}
     return {"rate_hz": rate, "frames": int(truth.shape[0]), "markers": int(truth.shape[1]), "gaps": len(cuts), "solve_s": solve_s,

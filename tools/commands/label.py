@@ -179,7 +179,7 @@ def _fill_gaps(args, pred: dict, pred_path: Path, model, md) -> tuple[np.ndarray
     predicted[rows], frames[rows] = solved_marker_positions(model, betas, poses, trans, pred["marker_faces"], pred["marker_bary"],
                                                             return_frames=True)
     max_frames = None if args.max_gap is None else int(np.floor(args.max_gap * md.rate_hz + 1e-9))
-    positions, filled = body_fill(md.positions, md.visible, predicted, max_frames, frames)
+    positions, filled = body_fill(md.positions, md.visible, predicted, frames, md.rate_hz, max_frames)
     gaps = bounded_gaps(md.visible)
     long = sum(max_frames is not None and g.frames > max_frames for g in gaps)
     n_filled = sum(bool(filled[g.start, g.marker]) for g in gaps)
