@@ -106,10 +106,10 @@ def solved_marker_positions(model, betas: np.ndarray, poses: np.ndarray, trans: 
 @dataclass(frozen=True)
 class GapFillConfig:
     """How ``body_fill`` turns the body's prediction into a fill (beyond the paper).  Measured with
-    ``uuomocap bench gap-fill`` on the four labelled captures of ../shared/data/markers plus a
-    generated walk (session 45; RMS mm over the cut samples at gaps of 0.1 / 0.25 / 0.5 / 1 / 2 s):
-    the raw prediction with a linear residual blend 8.0 / 10.1 / 7.7 / 13.8 / 12.0; smoothed
-    (0.02 s) 4.1 / 7.3 / 6.5 / 11.5 / 11.5; and the residual's slopes at the edges 2.7 / 6.1 / 6.3 /
+    ``uuomocap bench gap-fill`` on the four labelled captures of ../shared/data/markers (60-128 Hz;
+    session 45; RMS mm over the cut samples at gaps of 0.1 / 0.25 / 0.5 / 1 / 2 s): the prediction
+    as solved with a linear residual blend 8.0 / 10.1 / 7.7 / 13.8 / 12.0; smoothed (0.02 s) 4.1 /
+    7.3 / 6.5 / 11.5 / 11.5; and the residual carried in with its edge slopes 2.7 / 6.1 / 6.3 /
     10.9 / 11.4 (a cubic spline of the markers: 1.8 / 17.0 / 61.5 / 160.9 / 280.0)."""
 
     # Gaussian sigma (s) of the prediction along time: a solve jitters from frame to frame at

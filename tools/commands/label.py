@@ -142,9 +142,13 @@ def run_label(args) -> tuple[dict, str]:
     reference = _reference_names(args.session, md.n_markers)
     if reference is not None and l_names and compare_names(named.names, reference, l_names)["compared"]:
         info["against_reference"] = c = compare_names(named.names, reference, l_names)
-        lines.append(f"against the session's gt.npz names: {c['right']} of {c['compared']} right"
-                     + (f"; wrong: {' '.join(c['wrong'])}" if c["wrong"] else "")
-                     + (f"; unnamed: {' '.join(c['unnamed'])}" if c["unnamed"] else ""))
+        if 2 * c["compared"] < md.n_markers:  # another lab's names (BTK's 'R.Ankle'): a 'wrong' list would mislead
+            lines.append(f"the session's gt.npz names are another convention ({c['compared']} of {md.n_markers} are "
+                         f"{args.layout} names): not scored")
+        else:
+            lines.append(f"against the session's gt.npz names: {c['right']} of {c['compared']} right"
+                         + (f"; wrong: {' '.join(c['wrong'])}" if c["wrong"] else "")
+                         + (f"; unnamed: {' '.join(c['unnamed'])}" if c["unnamed"] else ""))
     lines += [f"  {r['was']:>10} -> {r['name']:<12} {r['part'] or '-':<15}"
               + (f" {r['layout_distance_mm']:5.1f} mm from the layout point" if r["layout_distance_mm"] is not None else "")
               for r in rows]
