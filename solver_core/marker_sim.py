@@ -232,6 +232,8 @@ class MarkerRealism:
     ghost_rate_hz: expected number of ghost tracks starting per second (0 = none); a ghost
       is a short spurious track (reflection) near the body, lasting ghost_seconds.
     swaps: number of identity swaps between two nearby tracks (from a random frame on).
+    track_breaks: a marker that reappears after a hide comes back as a new track (a new column),
+      as an unlabelled export of an optical system writes it: every column is one seen stretch.
     """
 
     noise_mm: float = 0.5
@@ -240,6 +242,7 @@ class MarkerRealism:
     ghost_rate_hz: float = 0.0
     ghost_seconds: tuple[float, float] = (0.05, 0.5)
     swaps: int = 0
+    track_breaks: bool = False
 
     def __post_init__(self):
         if self.noise_mm < 0:
@@ -273,7 +276,9 @@ class SimulatedMarkers:
     """positions (F, M, 3) metres with NaN where missing, in the SHUFFLED file order;
     face_ids (M,) (-1 for ghosts), bary (M, 3), names (M,) (landmark names or ''),
     order (M,) index into the unshuffled tracks (real markers first, then ghosts),
-    swaps: list of (frame, track_a, track_b) in file order."""
+    swaps: list of (frame, track_a, track_b) in file order,
+    source (M,) the physical marker of each track (index into the layout; -1 for ghosts): with
+    track breaks several tracks are one marker's stretches."""
 
     positions: np.ndarray
     face_ids: np.ndarray
@@ -283,6 +288,7 @@ class SimulatedMarkers:
     num_real: int
     num_ghosts: int
     swaps: list = field(default_factory=list)
+    source: np.ndarray | None = None
 
 
 def simulate_markers(clean: np.ndarray, layout: MarkerLayout, rate_hz: float, realism: MarkerRealism,
@@ -297,6 +303,17 @@ def simulate_markers(clean: np.ndarray, layout: MarkerLayout, rate_hz: float, re
     pos = clean + noise_rng.normal(0.0, realism.noise_mm / 1000.0, clean.shape)
     vis = occlusion_mask(F, M, realism.occlusion_prob, realism.occlusion_frames, occ_rng)
     pos = np.where(vis[..., None], pos, np.nan)
+    source = np.arange(M)
+    if realism.track_breaks:  # one column per seen stretch of each marker
+        runs = []
+        for m in range(M):
+            seen = np.flatnonzero(vis[:, m])
+            for run in np.split(seen, np.flatnonzero(np.diff(seen) > 1) + 1) if seen.size else []:
+                col = np.full((F, 3), np.nan)
+                col[run] = pos[run, m]
+                runs.append((m, col))
+        source = np.array([m for m, _ in runs], dtype=np.int64)
+        pos = np.stack([c for _, c in runs], 1) if runs else np.full((F, 0, 3), np.nan)
 
     # Ghosts: a Poisson number of short tracks, each either hovering at a fixed offset from a
     # real marker (a reflection on nearby skin/clothing) or still (a reflective object nearby).
@@ -323,10 +340,12 @@ def simulate_markers(clean: np.ndarray, layout: MarkerLayout, rate_hz: float, re
 
     order = order_rng.permutation(total)
     pos = pos[:, order]
-    face_ids = np.concatenate([layout.face_ids, np.full(n_ghosts, -1, dtype=np.int64)])[order]
-    bary = np.concatenate([layout.bary, np.zeros((n_ghosts, 3))])[order]
-    names_all = (list(layout.names) if layout.names else [""] * M) + [""] * n_ghosts
-    names = [names_all[i] for i in order]
+    source = np.concatenate([source, np.full(n_ghosts, -1, dtype=np.int64)])[order]
+    real = source >= 0
+    face_ids = np.where(real, np.asarray(layout.face_ids)[np.maximum(source, 0)], -1).astype(np.int64)
+    bary = np.where(real[:, None], np.asarray(layout.bary)[np.maximum(source, 0)], 0.0)
+    layout_names = list(layout.names) if layout.names else [""] * M
+    names = [layout_names[k] if k >= 0 else "" for k in source]
 
     # Swaps (in file order): two tracks close at frame t exchange identities from t on.
     swaps = []
@@ -342,4 +361,4 @@ def simulate_markers(clean: np.ndarray, layout: MarkerLayout, rate_hz: float, re
         b = int(others[int(np.argmin(d))])
         pos[t:, [a, b]] = pos[t:, [b, a]]
         swaps.append((t, a, b))
-    return SimulatedMarkers(pos, face_ids, bary, names, order, M, n_ghosts, swaps)
+    return SimulatedMarkers(pos, face_ids, bary, names, order, M, n_ghosts, swaps, source)

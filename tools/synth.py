@@ -47,6 +47,7 @@ class SampleConfig:
     occlusion_frames: int = 10
     ghost_rate_hz: float = 0.0
     swaps: int = 0
+    track_breaks: bool = False        # a marker back from a hide is a new column (unlabelled exports)
     body_model: str = "open-low"
     shape_sigma: float = 1.0          # betas ~ N(0, sigma^2), clipped to +-2.5 sigma
     up_axis: str = "+z"
@@ -215,7 +216,7 @@ def make_session(out_dir: str | Path, cfg: SampleConfig, progress=None) -> dict:
             layout = layout.subset(np.arange(n))
     clean = marker_trajectories(model, betas, motion.poses, motion.trans, layout)
     realism = MarkerRealism(noise_mm=cfg.noise_mm, occlusion_prob=cfg.occlusion, occlusion_frames=cfg.occlusion_frames,
-                            ghost_rate_hz=cfg.ghost_rate_hz, swaps=cfg.swaps)
+                            ghost_rate_hz=cfg.ghost_rate_hz, swaps=cfg.swaps, track_breaks=cfg.track_breaks)
     sim = simulate_markers(clean, layout, cfg.rate_hz, realism, cfg.seed)
 
     stage("camera")
@@ -240,6 +241,7 @@ def make_session(out_dir: str | Path, cfg: SampleConfig, progress=None) -> dict:
         # Extras beyond the contract (for evaluation and debugging; never for solving):
         "part": np.str_(cfg.part or ""),
         "marker_names": np.array(sim.names, dtype=np.str_),
+        "marker_source": np.asarray(sim.source, dtype=np.int64),  # the physical marker of each column (-1 ghost)
         "camera_R_wc": camera.R_wc,
         "camera_position": camera.position,
         "camera_K": camera.K,
@@ -264,6 +266,7 @@ def make_session(out_dir: str | Path, cfg: SampleConfig, progress=None) -> dict:
         "occlusion": float(cfg.occlusion),
         "occlusion_frames": int(cfg.occlusion_frames),
         "ghost_rate_hz": float(cfg.ghost_rate_hz),
+        "track_breaks": bool(cfg.track_breaks),
         "shape_sigma": float(cfg.shape_sigma),
         "body_model": cfg.body_model,
         "prior": {k: v for k, v in asdict(error).items()} if cfg.prior else None,

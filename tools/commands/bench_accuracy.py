@@ -150,16 +150,25 @@ def capture_scenarios(files: list[str], seeds: int | None, video: bool):
     return out
 
 
+def _fields(sample) -> dict:
+    """A SampleConfig's fields for the cache key; fields added later are left out at their off value,
+    so the sessions made before them keep their keys (and their cached solves)."""
+    d = asdict(sample)
+    if not d.get("track_breaks"):
+        d.pop("track_breaks", None)
+    return d
+
+
 def session_key(cfg) -> str:
     from uuomocap.synth import GENERATOR_VERSION
 
     if isinstance(cfg, CaptureConfig):
         from uuomocap.capture_session import GENERATOR_VERSION as CAPTURE_VERSION
 
-        blob = json.dumps({"v": CAPTURE_VERSION, "sha1": cfg.sha1, **asdict(cfg.sample)}, sort_keys=True, default=str)
+        blob = json.dumps({"v": CAPTURE_VERSION, "sha1": cfg.sha1, **_fields(cfg.sample)}, sort_keys=True, default=str)
         return f"capture-{Path(cfg.file).stem}-s{cfg.sample.seed}-{hashlib.sha1(blob.encode()).hexdigest()[:10]}"
 
-    blob = json.dumps({"v": GENERATOR_VERSION, **asdict(cfg)}, sort_keys=True, default=str)
+    blob = json.dumps({"v": GENERATOR_VERSION, **_fields(cfg)}, sort_keys=True, default=str)
     h = hashlib.sha1(blob.encode()).hexdigest()[:10]
     part = f"-{cfg.part}" if cfg.part else ""
     return f"{cfg.motion}-n{cfg.n_markers}{part}-o{cfg.occlusion:g}-s{cfg.seed}-{h}"

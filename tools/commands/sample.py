@@ -48,7 +48,7 @@ def config_from_args(args):
     return SampleConfig(
         motion=args.motion, duration_s=args.duration, start_s=args.start, rate_hz=args.rate, seed=args.seed,
         n_markers=args.markers, layout=args.layout, part=args.part, noise_mm=args.noise_mm, occlusion=args.occlusion,
-        ghost_rate_hz=args.ghosts, swaps=args.swaps, body_model=args.body_model, shape_sigma=args.shape_sigma,
+        ghost_rate_hz=args.ghosts, swaps=args.swaps, track_breaks=args.track_breaks, body_model=args.body_model, shape_sigma=args.shape_sigma,
         up_axis=args.up_axis, prior=args.prior, video=args.video, video_size=args.video_size,
         video_rate_hz=args.video_rate, prior_noise_rad=args.prior_noise, prior_shape_noise=args.prior_shape_noise,
         prior_dropout=args.prior_dropout, yaw_offset_deg=args.yaw_offset, clock_offset_s=args.clock_offset,
@@ -174,6 +174,9 @@ def register(subparsers) -> None:
                    help="per-frame probability that a marker starts a 10-frame hide (paper: 0, 0.002, 0.01)")
     m.add_argument("--ghosts", type=_nonneg, default=0.0, help="ghost tracks starting per second")
     m.add_argument("--swaps", type=int, default=0, help="identity swaps between nearby tracks")
+    m.add_argument("--track-breaks", action="store_true",
+                   help="a marker back from an occlusion comes back as a new column, as unlabelled exports write it "
+                        "(gt.npz marker_source: the physical marker of each column)")
     m.add_argument("--body-model", default="open-low", help="open-low, open-full, or a SMPL .pkl/.npz path")
     m.add_argument("--shape-sigma", type=_nonneg, default=1.0, help="body shape spread (betas std)")
     m.add_argument("--up-axis", choices=("+z", "+y"), default="+z", help="world up axis")
