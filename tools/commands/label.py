@@ -45,6 +45,10 @@ def register(subparsers) -> None:
                    help="fill each marker's gaps (seen before and after) from the solved body: the marker's point on the body, "
                         "corrected by its residual at the gap's edges; in a C3D the filled samples carry residual 0 "
                         "(C3D: computed, not measured)")
+    p.add_argument("--merge-tracks", action="store_true",
+                   help="join the columns that are one marker (an unlabelled export starts a new column each time a marker "
+                        "comes back): a column continues another when it starts where the solved body carries the other's "
+                        "marker; the file gets one column per marker")
     p.add_argument("--max-gap", type=float, default=None, metavar="S",
                    help="with --fill-gaps: leave gaps longer than S seconds open (default: fill every gap the body covers)")
     add_json_flag(p)
@@ -106,30 +110,55 @@ def run_label(args) -> tuple[dict, str]:
         raise UserError(f"--max-distance-mm {args.max_distance_mm}: give a positive distance")
     l_faces, l_bary, l_names = load_layout(args.layout, model, betas, body_model)
     parts = [str(x) for x in pred.get("marker_parts", [""] * faces.shape[0])]
-    named = name_markers(model, betas, faces, pred["marker_bary"], parts, l_faces, l_bary, l_names,
+    bary = np.asarray(pred["marker_bary"], np.float64)
+    was = [md.raw_labels[k] if md.raw_labels else md.labels[k] for k in range(md.n_markers)]
+    positions, visible, residuals = md.positions, md.visible, _file_residuals_mm(md)
+    predicted = frames = None
+    if args.fill_gaps or args.merge_tracks:
+        predicted, frames = _body_predictions(pred, pred_path, model, md)
+    merge_info = None
+    if args.merge_tracks:
+        from uuomocap.solver_core.track_stitching import merge_columns, stitch_columns
+
+        chains = stitch_columns(md.positions, md.visible, predicted, frames, md.rate_hz)
+        rep = [max(c, key=lambda k: int(md.visible[:, k].sum())) for c in chains]  # the longest column's point
+        positions, visible = merge_columns(md.positions, md.visible, chains)
+        residuals = np.stack([residuals[:, c].max(1) for c in chains], 1)  # columns of a chain never overlap
+        faces, bary, parts = faces[rep], bary[rep], [parts[r] for r in rep]
+        predicted, frames = predicted[:, rep], frames[:, rep]
+        was = ["+".join(was[c] for c in chain[:3]) + (f"+{len(chain) - 3} more" if len(chain) > 3 else "") for chain in chains]
+        merge_info = {"columns": md.n_markers, "markers": len(chains), "chains": [[int(c) for c in chain] for chain in chains]}
+    named = name_markers(model, betas, faces, bary, parts, l_faces, l_bary, l_names,
                          MarkerNamingConfig(max_distance_m=cap_mm / 1000.0))
-    positions = np.where(md.visible[..., None], md.positions, np.nan)
-    residuals, fill_info = None, None
+    fill_info = None
     if args.fill_gaps:
-        positions, residuals, fill_info = _fill_gaps(args, pred, pred_path, model, md)
+        positions, residuals, fill_info = _fill_gaps(args, positions, visible, residuals, predicted, frames, md.rate_hz)
     elif args.max_gap is not None:
         raise UserError("--max-gap needs --fill-gaps")
+    if not args.fill_gaps:
+        positions = np.where(visible[..., None], positions, np.nan)
+    n_out = positions.shape[1]
     try:
         if out.suffix.lower() == ".c3d":
-            write_c3d(out, positions, md.rate_hz, labels=list(named.names), up_axis=md.up_axis, residuals=residuals)
+            write_c3d(out, positions, md.rate_hz, labels=list(named.names), up_axis=md.up_axis,
+                      residuals=residuals if (args.fill_gaps or md.residuals is not None) else None)
         else:
             write_trc(out, positions, md.rate_hz, labels=list(named.names), up_axis=md.up_axis)
     except (OSError, ValueError) as exc:
         raise UserError(f"--out {out}: cannot write ({exc})") from None
-    rows = [{"column": k, "was": md.raw_labels[k] if md.raw_labels else md.labels[k], "name": n, "part": parts[k],
+    rows = [{"column": k, "was": was[k], "name": n, "part": parts[k],
              "layout_distance_mm": None if not np.isfinite(d) else round(1000 * float(d), 1)}
             for k, (n, d) in enumerate(zip(named.names, named.distance_m))]
-    info = {"out": str(out), "frames": md.n_frames, "markers": md.n_markers, "layout": args.layout,
+    info = {"out": str(out), "frames": md.n_frames, "markers": n_out, "layout": args.layout,
             "layout_names": len(l_names), "named_from_layout": named.named_count,
             "max_distance_mm": cap_mm, "markers_named": rows}
-    how = (f"{named.named_count} named from {args.layout} ({len(l_names)} names), {md.n_markers - named.named_count} by segment"
+    how = (f"{named.named_count} named from {args.layout} ({len(l_names)} names), {n_out - named.named_count} by segment"
            if l_names else "named by segment")
-    lines = [f"wrote {out}: {md.n_frames} frames @ {md.rate_hz:g} Hz, {md.n_markers} markers; {how}"]
+    lines = [f"wrote {out}: {md.n_frames} frames @ {md.rate_hz:g} Hz, {n_out} markers; {how}"]
+    if merge_info is not None:
+        info["merge_tracks"] = merge_info
+        lines.append(f"joined {md.n_markers} columns into {n_out} markers (one marker's columns: each starts where the "
+                     "solved body carries the previous one's marker)")
     if fill_info is not None:
         info["gap_fill"] = fill_info
         lines.append(f"filled {fill_info['filled_gaps']} of {fill_info['gaps']} gaps from the solved body "
@@ -140,10 +169,12 @@ def run_label(args) -> tuple[dict, str]:
         info["written_up_axis"] = "+y"
         lines.append(f"(the TRC is +y up, turned from the capture's {md.up_axis}, as OpenSim reads it)")
     reference = _reference_names(args.session, md.n_markers)
+    if reference is not None and merge_info is not None:
+        reference = [reference[max(c, key=lambda k: int(md.visible[:, k].sum()))] for c in merge_info["chains"]]
     if reference is not None and l_names and compare_names(named.names, reference, l_names)["compared"]:
         info["against_reference"] = c = compare_names(named.names, reference, l_names)
-        if 2 * c["compared"] < md.n_markers:  # another lab's names (BTK's 'R.Ankle'): a 'wrong' list would mislead
-            lines.append(f"the session's gt.npz names are another convention ({c['compared']} of {md.n_markers} are "
+        if 2 * c["compared"] < n_out:  # another lab's names (BTK's 'R.Ankle'): a 'wrong' list would mislead
+            lines.append(f"the session's gt.npz names are another convention ({c['compared']} of {n_out} are "
                          f"{args.layout} names): not scored")
         else:
             lines.append(f"against the session's gt.npz names: {c['right']} of {c['compared']} right"
@@ -155,17 +186,24 @@ def run_label(args) -> tuple[dict, str]:
     return info, "\n".join(lines)
 
 
-def _fill_gaps(args, pred: dict, pred_path: Path, model, md) -> tuple[np.ndarray, np.ndarray, dict]:
-    """``--fill-gaps``: (positions with the bounded gaps filled from the body, residuals for write_c3d
-    (the file's own, in mm, where it has them; 0 on filled samples), what was filled)."""
+def _file_residuals_mm(md) -> np.ndarray:
+    """(T, M) the file's own residuals in mm where it has them (a measured sample's is positive), else 0."""
     from uuomocap.protocol.markerio import unit_metres
-    from uuomocap.solver_core.gap_fill import body_fill, bounded_gaps, solved_marker_positions
 
-    if args.max_gap is not None and not args.max_gap > 0:
-        raise UserError(f"--max-gap {args.max_gap}: give a positive number of seconds")
+    if md.residuals is None:
+        return np.zeros(md.positions.shape[:2])
+    to_mm = 1000.0 * (unit_metres(md.units_found) or 1e-3)  # the reader assumes mm when the file names none
+    return np.where(md.visible, np.clip(md.residuals, 0, None) * to_mm, 0.0)
+
+
+def _body_predictions(pred: dict, pred_path: Path, model, md) -> tuple[np.ndarray, np.ndarray]:
+    """Where the solved body puts each column's marker at every frame of the marker file, and its
+    face frames: ``gap_fill.solved_marker_positions`` (NaN where the solve has no frame)."""
+    from uuomocap.solver_core.gap_fill import solved_marker_positions
+
     for k in ("poses", "trans"):
         if k not in pred:
-            raise UserError(f"{pred_path}: missing {k!r} - --fill-gaps needs the solved poses")
+            raise UserError(f"{pred_path}: missing {k!r} - --fill-gaps / --merge-tracks need the solved poses")
     poses, trans = np.asarray(pred["poses"], np.float64), np.asarray(pred["trans"], np.float64)
     betas = np.asarray(pred["frame_betas"] if "frame_betas" in pred else pred["betas"], np.float64)
     n = poses.shape[0]
@@ -182,20 +220,26 @@ def _fill_gaps(args, pred: dict, pred_path: Path, model, md) -> tuple[np.ndarray
     predicted, frames = np.full(md.positions.shape, np.nan), np.full((*md.positions.shape, 3), np.nan)
     predicted[rows], frames[rows] = solved_marker_positions(model, betas, poses, trans, pred["marker_faces"], pred["marker_bary"],
                                                             return_frames=True)
-    max_frames = None if args.max_gap is None else int(np.floor(args.max_gap * md.rate_hz + 1e-9))
-    positions, filled = body_fill(md.positions, md.visible, predicted, frames, md.rate_hz, max_frames)
-    gaps = bounded_gaps(md.visible)
+    return predicted, frames
+
+
+def _fill_gaps(args, positions, visible, residuals, predicted, frames, rate_hz) -> tuple[np.ndarray, np.ndarray, dict]:
+    """``--fill-gaps``: (positions with the bounded gaps filled from the body, residuals for write_c3d
+    (the file's own where it has them; 0 on filled samples: C3D's 'computed'), what was filled)."""
+    from uuomocap.solver_core.gap_fill import body_fill, bounded_gaps
+
+    if args.max_gap is not None and not args.max_gap > 0:
+        raise UserError(f"--max-gap {args.max_gap}: give a positive number of seconds")
+    max_frames = None if args.max_gap is None else int(np.floor(args.max_gap * rate_hz + 1e-9))
+    filled_pos, filled = body_fill(positions, visible, predicted, frames, rate_hz, max_frames)
+    gaps = bounded_gaps(visible)
     long = sum(max_frames is not None and g.frames > max_frames for g in gaps)
     n_filled = sum(bool(filled[g.start, g.marker]) for g in gaps)
-    residuals = np.zeros(md.positions.shape[:2])
-    if md.residuals is not None:  # keep the file's own (a measured sample's residual is positive; 0 = computed)
-        to_mm = 1000.0 * (unit_metres(md.units_found) or 1e-3)  # the reader assumes mm when the file names none
-        residuals = np.where(md.visible, np.clip(md.residuals, 0, None) * to_mm, 0.0)
-    total = md.visible.size
-    return positions, residuals, {
+    total = visible.size
+    return filled_pos, np.where(filled, 0.0, residuals), {
         "gaps": len(gaps), "filled_gaps": n_filled, "filled_samples": int(filled.sum()), "left_open_long": int(long),
         "left_open_unsolved": len(gaps) - n_filled - int(long), "max_gap_s": args.max_gap,
-        "visible_before": float(md.visible.sum() / total), "visible_after": float((md.visible | filled).sum() / total),
+        "visible_before": float(visible.sum() / total), "visible_after": float((visible | filled).sum() / total),
         "filled": [{"column": g.marker, "first_frame": g.start, "frames": g.frames} for g in gaps if filled[g.start, g.marker]],
     }
 
