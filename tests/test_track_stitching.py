@@ -83,3 +83,18 @@ def test_label_merge_tracks_writes_one_named_column_per_marker(tmp_path, capsys)
     for k, chain in enumerate(info["merge_tracks"]["chains"]):
         assert len({str(gt["marker_names"][c]) for c in chain}) == 1
         np.testing.assert_array_equal(got.visible[:, k], source.visible[:, chain].any(1))
+
+
+def test_bench_merge_tracks_counts_joined_pure_and_whole_markers(capsys):
+    from uuomocap.cli import main
+    from uuomocap.commands.bench_merge_tracks import score_chains
+
+    source = np.array([0, 1, 0, 2, 2, 1])
+    assert score_chains([[0, 2], [1], [5], [3, 4]], source) == {"chains": 4, "pure": 4, "whole_markers": 2}
+    assert score_chains([[0, 1], [2, 5], [3, 4]], source) == {"chains": 3, "pure": 1, "whole_markers": 1}
+
+    assert main(["bench", "merge-tracks", "--motions", "walk", "--seeds", "1", "--duration", "2", "--occlusion", "0.03", "--json"]) == 0
+    row = json.loads(capsys.readouterr().out)["sessions"][0]
+    assert row["markers"] == 39 and row["columns"] > 39
+    assert row["truth"]["whole_markers"] == 39 and row["truth"]["chains"] == 39  # true points and poses: every marker whole
+    assert row["solved"]["pure"] >= 0.9 * row["solved"]["chains"]

@@ -117,6 +117,9 @@ def _suite_scenarios(suite: str, seeds: int | None, motions: tuple[str, ...] | N
     for p in OCCLUSIONS:
         out.append(("occlusion (40 markers)", f"occl {100 * p:g}%",
                     [replace(base, motion=m, seed=s, n_markers=40, occlusion=p) for m, s in grid]))
+    # the same hides, each marker back as a new column (an unlabelled export): every column one seen stretch
+    out.append(("occlusion (40 markers)", "breaks 1%",
+                [replace(base, motion=m, seed=s, n_markers=40, occlusion=0.01, track_breaks=True) for m, s in grid]))
     return out
 
 
