@@ -46,7 +46,7 @@ from uuomocap.solver_core.marker_surface_correspondence import (
     place_on_joints,
 )
 from uuomocap.solver_core.chamfer import vertex_face_table
-from uuomocap.solver_core.cluster_consistency import ClusterConsistencyConfig, inconsistent_markers
+from uuomocap.solver_core.cluster_consistency import ClusterConsistencyConfig, inconsistent_markers, seen_span_fraction
 from uuomocap.solver_core.part_matching import PartMatch, PartMatchingConfig, full_translation, match_markers_to_part
 from uuomocap.solver_core.parts import vertex_dominant_joint
 from uuomocap.solver_core.placement_selection import PlacementSelectionConfig, select_marker_placements
@@ -241,7 +241,10 @@ def enforce_cluster_consistency(model, markers, visible, params, up, attachment:
     frames.  Returns (attachment, number of markers moved)."""
     if not config.cluster_consistency.enabled:
         return attachment, 0
-    bad = inconsistent_markers(cluster_labels, marker_joint_ids(model, attachment), model.parents.numpy(), config.cluster_consistency)
+    vis_np = visible.numpy() if isinstance(visible, torch.Tensor) else np.asarray(visible)
+    judged = seen_span_fraction(vis_np) >= config.cluster_consistency.min_span_fraction
+    bad = inconsistent_markers(cluster_labels, marker_joint_ids(model, attachment), model.parents.numpy(), config.cluster_consistency,
+                               judged)
     if not bad:
         return attachment, 0
     face_ids, bary, score = attachment.face_ids.clone(), attachment.bary.clone(), attachment.score_m.clone()

@@ -314,9 +314,9 @@ def test_a_take_in_fragmented_columns_solves(tmp_path):
     from uuomocap.solver_methods import _params_arrays
 
     joints = _params_arrays(model, res.params, inp.up_axis)[3]
-    # measured (session 45): 21.4 mm, parts right for 71 % of the 87 columns; the same take in 39 whole
-    # columns 20.7 mm and 92 % (a column seen for a second says less about its point than a whole take);
-    # before the centroid handled fragments: 506 mm
+    # measured (session 45, Stage 4): 21.4 mm, parts right for 71 % of the 87 columns; the same take in
+    # 39 whole columns 20.7 mm and 92 % (a column seen for a second says less about its point than a whole
+    # take); before the centroid handled fragments: 506 mm
     assert _mpjpe(joints, gt) < 40.0, _mpjpe(joints, gt)
     truth = attachment_joint_names(model, np.asarray(gt["marker_faces"]), np.asarray(gt["marker_bary"]))
     assert np.mean([a == b for a, b in zip(res.marker_parts, truth)]) > 0.6
@@ -490,6 +490,22 @@ def test_screening_budget_caps_only_the_hypotheses(full_session):
     assert seen.most["stage1"] == 10  # L-BFGS runs in steps of 10 iterations: one step per fit
     assert seen.most["stage2"] > 10
     assert res.diagnostics["full_body"] is True
+
+
+def test_cluster_consistency_leaves_columns_seen_over_a_short_part_of_the_take_out():
+    from uuomocap.solver_core.cluster_consistency import inconsistent_markers, seen_span_fraction
+
+    vis = np.ones((100, 7), bool)
+    vis[:, 2] = False
+    vis[10:30, 2] = True       # a column of one stretch (an export's fragment)
+    vis[1::3, 3] = False       # gaps, but seen from start to end
+    np.testing.assert_allclose(seen_span_fraction(vis), [1.0, 1.0, 0.2, 1.0, 1.0, 1.0, 1.0])
+    parents = np.array([-1, 0, 1, 2, 3])  # a chain of five joints
+    # cluster 0 on joint 0, two of its markers far along the chain on joint 4, which cluster 1 owns
+    labels = np.array([0, 0, 0, 0, 1, 1, 1])
+    joints = np.array([0, 0, 4, 4, 4, 4, 4])
+    assert set(inconsistent_markers(labels, joints, parents)) == {2, 3}
+    assert set(inconsistent_markers(labels, joints, parents, judged=seen_span_fraction(vis) >= 0.5)) == {3}
 
 
 def test_a_decisive_registration_screens_one_hypothesis():
