@@ -31,6 +31,24 @@ def _jsonable(obj: Any) -> Any:
     return obj
 
 
+class _NoBar:
+    def update(self, n: int = 1) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def bench_progress(args: Any, total: int, desc: str):
+    """A benchmark's per-session progress bar (tqdm), or one that draws nothing under ``--quiet`` or
+    ``--json`` to stdout (the bar would share the terminal with the JSON)."""
+    if getattr(args, "quiet", False) or getattr(args, "json", None) == "-":
+        return _NoBar()
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit="session", desc=desc)
+
+
 def emit(args: Any, data: dict, text: str | None = None) -> None:
     """Print ``data`` as JSON when ``--json`` was given, else ``text`` (or key: value lines)."""
     if getattr(args, "json", False):

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from uuomocap.commands import UserError, emit_bench
+from uuomocap.commands import UserError, bench_progress, emit_bench
 
 FILLS = ("body", "body as solved, linear blend", "body (no edge correction)", "spline", "linear")
 
@@ -147,11 +147,7 @@ def run(args) -> int:
         raise UserError("nothing to run: give motions or captures, positive gap lengths, seeds >= 1 and gaps per length >= 1")
     torch.set_num_threads(1)
     jobs = [(kind, name, seed) for kind, name in sources for seed in range(args.seeds)]
-    bar = None
-    if not args.quiet and args.json != "-":
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(jobs), unit="session", desc="bench gap-fill")
+    bar = bench_progress(args, len(jobs), "bench gap-fill")
     rows = []
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="uuomocap-bench-gapfill-") as tmp:
@@ -163,10 +159,8 @@ def run(args) -> int:
             else:
                 make_capture_session(name, d, cfg)
             rows.append({"source": Path(name).name, "seed": seed, **_one(d, lengths, args.gaps_per_length, seed)})
-            if bar is not None:
-                bar.update(1)
-    if bar is not None:
-        bar.close()
+            bar.update(1)
+    bar.close()
     pooled = _pool(rows)
     keys = sorted(pooled["body"], key=float)
     head = f"{'fill':27}" + "".join(f"{k + ' s':>16}" for k in keys)

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from uuomocap.commands import UserError, emit_bench
+from uuomocap.commands import UserError, bench_progress, emit_bench
 
 
 def register_bench(subparsers) -> None:
@@ -84,11 +84,7 @@ def run(args) -> int:
         raise UserError("nothing to run: give motions, seeds >= 1 and an occlusion between 0 and 1")
     torch.set_num_threads(1)
     jobs = [(m, s) for m in motions for s in range(args.seeds)]
-    bar = None
-    if not args.quiet and args.json != "-":
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(jobs), unit="session", desc="bench merge-tracks")
+    bar = bench_progress(args, len(jobs), "bench merge-tracks")
     rows = []
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="uuomocap-bench-merge-") as tmp:
@@ -97,10 +93,8 @@ def run(args) -> int:
             make_session(d, SampleConfig(motion=motion, duration_s=args.duration, rate_hz=30.0, seed=seed, layout="structured",
                                          occlusion=args.occlusion, track_breaks=True, video=False))
             rows.append({"motion": motion, "seed": seed, **_one(d)})
-            if bar is not None:
-                bar.update(1)
-    if bar is not None:
-        bar.close()
+            bar.update(1)
+    bar.close()
     head = f"{'motion':8} {'sessions':>8} {'columns':>8} {'markers':>8} | {'joined':>7} {'pure':>5} {'whole':>6} {'names':>6} | truth: {'joined':>6} {'whole':>6}"
     lines = ["an unlabelled export's columns joined into markers (uuo's solve; and the true points and poses)", head, "-" * len(head)]
     for motion in [*motions, "all"]:

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from uuomocap.commands import UserError, emit_bench
+from uuomocap.commands import UserError, bench_progress, emit_bench
 
 
 def register_bench(subparsers) -> None:
@@ -109,11 +109,7 @@ def run(args) -> int:
     torch.set_num_threads(1)
     _, model = load_solver_models("open-low")
     jobs = [(kind, name, seed, e) for kind, name in sources for seed in range(args.seeds) for e in errors]
-    bar = None
-    if not args.quiet and args.json != "-":
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(jobs), unit="session", desc="bench sync")
+    bar = bench_progress(args, len(jobs), "bench sync")
     results: dict[str, list[dict]] = {}
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="uuomocap-bench-sync-") as tmp:
@@ -124,10 +120,8 @@ def run(args) -> int:
             (make_session if kind == "motion" else make_capture_session)(*((d, cfg) if kind == "motion" else (name, d, cfg)))
             row = {"seed": seed, **_one(model, d, e, args.video)}
             results.setdefault(Path(name).name, []).append(row)
-            if bar is not None:
-                bar.update(1)
-    if bar is not None:
-        bar.close()
+            bar.update(1)
+    bar.close()
     summaries = {k: _summary(v, args.tolerance) for k, v in results.items()}
     total = _summary([r for v in results.values() for r in v], args.tolerance)
     head = (f"{'motion':28} {'sessions':>8} {'right':>6} {'wrong':>6} {'ambig.':>6} {'weak':>5} {'flat':>5} {'no overlap':>10}"
