@@ -20,7 +20,8 @@ def register(subparsers) -> None:
         help="write a solved take's markers with names (C3D/TRC): Plug-in Gait, your template's, or segment names",
         description=(
             "Name the markers of a solved take and write them to a C3D or TRC file: every frame and column "
-            "of the marker file as recorded (gaps stay gaps; a TRC is turned +y up, as OpenSim reads it), "
+            "of the marker file as recorded (gaps stay gaps unless --fill-gaps; an unlabelled export's "
+            "fragmented columns stay apart unless --merge-tracks; a TRC is turned +y up, as OpenSim reads it), "
             "with labels.  Each marker's solved surface point is matched to the named points of a layout on "
             "the rest pose of the solved body (each name used once, the summed distance smallest, no pair "
             "further apart than --max-distance-mm); "
