@@ -167,3 +167,13 @@ def test_label_fill_gaps_fills_from_the_body_and_marks_the_filled_samples(pig_ta
     assert short["left_open_long"] == sum(n > 10 for n in all_lengths)
     assert main(["label", str(out), "--session", str(sd), "--out", str(tmp_path / "x.c3d"), "--max-gap", "0.1"]) == 2
     assert "--max-gap needs --fill-gaps" in capsys.readouterr().err
+
+
+def test_the_demos_hand_over_runs_label_and_export_as_their_command_lines_do(pig_take, tmp_path):
+    # make demo calls the verbs in-process; it once built their arguments by hand and broke when label gained options
+    from uuomocap.commands.demo import _hand_over
+
+    sd, out, truth, parts = pig_take
+    done = _hand_over(out, sd, tmp_path)
+    assert set(done) == {"bvh", "named_markers"}
+    assert (tmp_path / "stream.bvh").stat().st_size > 1000 and (tmp_path / "markers_named.c3d").is_file()

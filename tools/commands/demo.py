@@ -104,17 +104,17 @@ def _handler(args) -> int:
 def _hand_over(pred, session, out) -> dict:
     """What a user takes to other tools: the skeleton as BVH and the markers with names (the demo's
     markers are random, so segment names)."""
-    from argparse import Namespace
-
+    from uuomocap.cli import build_parser
     from uuomocap.commands.export import run_export
     from uuomocap.commands.label import run_label
 
+    # the verbs' own parser: their arguments as a user's command line gives them, every option's default included
+    parse = build_parser().parse_args
     done = {}
     try:
-        done["bvh"] = run_export(Namespace(pred=str(pred), out=str(out / "stream.bvh"), session=str(session), markers=None,
-                                           up_axis=None, units="cm"))[0]["out"]
-        done["named_markers"] = run_label(Namespace(pred=str(pred), out=str(out / "markers_named.c3d"), session=str(session),
-                                                    markers=None, layout="segments", max_distance_mm=None))[0]["out"]
+        done["bvh"] = run_export(parse(["export", str(pred), "--out", str(out / "stream.bvh"), "--session", str(session)]))[0]["out"]
+        done["named_markers"] = run_label(parse(["label", str(pred), "--out", str(out / "markers_named.c3d"),
+                                                 "--session", str(session)]))[0]["out"]
     except UserError as exc:  # nor are the hand-over files
         print(f"(no export: {exc})", flush=True)
     return done
