@@ -83,11 +83,10 @@ def cluster_joint_owners(cluster_labels: np.ndarray, marker_joints: np.ndarray, 
 def seen_span_fraction(visible: np.ndarray) -> np.ndarray:
     """(M,) part of the frames between each marker's first and last sighting, inclusive (0 if never
     seen).  visible: (T, M) bool."""
-    vis = np.asarray(visible, bool)
-    seen = vis.any(0)
-    first = vis.argmax(0)
-    last = vis.shape[0] - 1 - vis[::-1].argmax(0)
-    return np.where(seen, (last - first + 1) / max(1, vis.shape[0]), 0.0)
+    from uuomocap.solver_core.gap_fill import column_spans
+
+    first, last = column_spans(visible)
+    return np.where(first >= 0, (last - first + 1) / max(1, np.asarray(visible).shape[0]), 0.0)
 
 
 def inconsistent_markers(

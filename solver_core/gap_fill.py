@@ -35,6 +35,21 @@ class GapSpan:
         return self.stop - self.start
 
 
+def column_spans(visible: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(first, last) seen frame of every column (M,), -1 for a column never seen.  visible: (T, M)."""
+    vis = np.asarray(visible, bool)
+    seen = vis.any(0)
+    first = np.where(seen, vis.argmax(0), -1)
+    last = np.where(seen, vis.shape[0] - 1 - vis[::-1].argmax(0), -1)
+    return first, last
+
+
+def _line_across(before: np.ndarray, after: np.ndarray, frames: int) -> np.ndarray:
+    """(frames, 3) a straight line from the sample before a gap to the one after it, exclusive."""
+    w = (np.arange(1, frames + 1) / (frames + 1))[:, None]
+    return (1 - w) * before + w * after
+
+
 def bounded_gaps(visible: np.ndarray) -> list[GapSpan]:
     """Every gap bounded by seen frames on both sides.  visible: (T, M) bool."""
     vis = np.asarray(visible, bool)
@@ -194,15 +209,14 @@ def body_fill(positions: np.ndarray, visible: np.ndarray, predicted: np.ndarray,
             continue
         lb = to_local(_seen_run(vis[:, m] & usable[:, m], g.start - 1, -1, context)[::-1], m)  # ends at the edge
         la = to_local(_seen_run(vis[:, m] & usable[:, m], g.stop, 1, context), m)  # starts at the edge
-        span = g.frames + 1  # frames from the edge before to the edge after
-        s = (np.arange(1, span) / span)[:, None]
-        # cubic Hermite between the edge residuals; tangents per frame, faded on long gaps
-        fade = min(1.0, c.slope_fade_s * rate / span) if context else 0.0
-        m0, m1 = (_edge_slope(lb), _edge_slope(la)) if context else (np.zeros(3), np.zeros(3))
-        local = ((2 * s ** 3 - 3 * s ** 2 + 1) * lb[-1] + (-2 * s ** 3 + 3 * s ** 2) * la[0]
-                 + fade * span * ((s ** 3 - 2 * s ** 2 + s) * m0 + (s ** 3 - s ** 2) * m1))
-        if not context:  # no slopes: the linear blend (a Hermite with zero tangents would ease in and out)
-            local = (1 - s) * lb[-1] + s * la[0]
+        if context:  # cubic Hermite between the edge residuals; tangents per frame, faded on long gaps
+            span = g.frames + 1  # frames from the edge before to the edge after
+            s = (np.arange(1, span) / span)[:, None]
+            fade = min(1.0, c.slope_fade_s * rate / span)
+            local = ((2 * s ** 3 - 3 * s ** 2 + 1) * lb[-1] + (-2 * s ** 3 + 3 * s ** 2) * la[0]
+                     + fade * span * ((s ** 3 - 2 * s ** 2 + s) * _edge_slope(lb) + (s ** 3 - s ** 2) * _edge_slope(la)))
+        else:  # no slopes: the linear blend (a Hermite with zero tangents would ease in and out)
+            local = _line_across(lb[-1], la[0], g.frames)
         inner = predicted[g.start:g.stop, m]
         pos[g.start:g.stop, m] = inner + (local if frames is None else np.einsum("tij,ti->tj", frames[g.start:g.stop, m], local))
         filled[g.start:g.stop, m] = True
@@ -216,8 +230,7 @@ def linear_fill(positions: np.ndarray, visible: np.ndarray, max_gap_frames: int 
     for g in bounded_gaps(visible):
         if max_gap_frames is not None and g.frames > max_gap_frames:
             continue
-        w = (np.arange(1, g.frames + 1) / (g.frames + 1))[:, None]
-        pos[g.start:g.stop, g.marker] = (1 - w) * pos[g.start - 1, g.marker] + w * pos[g.stop, g.marker]
+        pos[g.start:g.stop, g.marker] = _line_across(pos[g.start - 1, g.marker], pos[g.stop, g.marker], g.frames)
         filled[g.start:g.stop, g.marker] = True
     return pos, filled
 
@@ -240,8 +253,7 @@ def spline_fill(positions: np.ndarray, visible: np.ndarray, max_gap_frames: int 
         t = np.flatnonzero(vis[lo:hi, g.marker]) + lo
         # samples already filled are not measurements: only seen ones carry the spline
         if t.size < 4:  # too few for a cubic: a line
-            w = (np.arange(1, g.frames + 1) / (g.frames + 1))[:, None]
-            pos[g.start:g.stop, g.marker] = (1 - w) * pos[g.start - 1, g.marker] + w * pos[g.stop, g.marker]
+            pos[g.start:g.stop, g.marker] = _line_across(pos[g.start - 1, g.marker], pos[g.stop, g.marker], g.frames)
         else:
             pos[g.start:g.stop, g.marker] = CubicSpline(t, pos[t, g.marker], axis=0)(np.arange(g.start, g.stop))
         filled[g.start:g.stop, g.marker] = True

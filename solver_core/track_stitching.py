@@ -17,6 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from uuomocap.solver_core.gap_fill import column_spans
+
 
 @dataclass(frozen=True)
 class StitchConfig:
@@ -28,15 +30,6 @@ class StitchConfig:
     # Longest gap (s) a link may bridge: beyond it the body alone carries the marker (as the gap
     # fill does), and its pose through a long gap is the video prior's more than the markers'.
     max_gap_s: float = 1.0
-
-
-def column_spans(visible: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(first, last) seen frame of every column (M,), -1 for a column never seen.  visible: (T, M)."""
-    vis = np.asarray(visible, bool)
-    seen = vis.any(0)
-    first = np.where(seen, vis.argmax(0), -1)
-    last = np.where(seen, vis.shape[0] - 1 - vis[::-1].argmax(0), -1)
-    return first, last
 
 
 def handover_costs(positions: np.ndarray, visible: np.ndarray, predicted: np.ndarray, frames: np.ndarray,
