@@ -241,7 +241,8 @@ def initial_fit(markers: np.ndarray, visible: np.ndarray, rate_hz: float, up_axi
     sel = upright_frames(markers, visible, up_axis, frames)
     stamps = np.round(np.arange(len(sel)) * 1e9).astype(np.int64)
     prior = neutral_prior(len(sel), up_axis, model.num_betas, stamps)
-    cfg = SolverConfig(screening_frames=len(sel), chamfer_frames=len(sel), force_full_body=True)
+    cfg = SolverConfig(screening_frames=len(sel), chamfer_frames=len(sel), force_full_body=True,
+                       track_stitching=None)  # the frames are not consecutive: no handovers
     # the neutral prior has no rotation to offer a second opinion on the marker points
     cfg = replace(cfg, placement_selection=replace(cfg.placement_selection, enabled=False))
     # frames are not consecutive: a 1 Hz "rate" makes the temporal terms negligible

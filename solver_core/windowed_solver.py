@@ -119,8 +119,10 @@ def windowed_staged_config(**overrides) -> SolverConfig:
     MPJPE, 13 sessions = the bench's three + ten ``sample make`` takes): 0.1 in the bootstrap and the
     upgrades 15.46 mm (the bench's three 11.59), 1 in both 14.85 (11.02), 1 in the bootstrap only
     14.74 (11.63).  A 3 s window leans on the video's shape more than a whole take does.  Its Stage-2
-    pose prior stays the paper's 1 too (the offline 2 of session 29 was measured on whole takes only)."""
-    c = SolverConfig(**overrides)
+    pose prior stays the paper's 1 too (the offline 2 of session 29 was measured on whole takes only).
+    No track stitching (``SolverConfig.track_stitching``): a second pass would double the bootstrap,
+    and new columns after the lock are assigned as they come (``WindowedSolver``)."""
+    c = SolverConfig(**{"track_stitching": None, **overrides})
     paper = PoseFittingConfig()
     return replace(c, pose_fitting=replace(c.pose_fitting, shape_weight=paper.shape_weight, pose_weight=paper.pose_weight))
 
@@ -178,7 +180,9 @@ def bootstrap_alternative_config() -> SolverConfig:
 def upgrade_solver_config() -> SolverConfig:
     """The lock upgrades' staged solver: the offline one screening the best-registered yaw only, with
     the paper's Stage-2 pose prior (``WindowedSolverConfig.upgrade_solver`` says why)."""
-    c = SolverConfig(max_hypotheses=1)
+    # no track stitching (SolverConfig.track_stitching): the reservoir's frames are not consecutive,
+    # so a column's end and the next one's start are not a handover
+    c = SolverConfig(max_hypotheses=1, track_stitching=None)
     return replace(c, pose_fitting=replace(c.pose_fitting, pose_weight=PoseFittingConfig().pose_weight))
 
 

@@ -298,6 +298,14 @@ def _summary(info: dict, method: str) -> str:
         lines.append(f"yaw: {info['chosen_yaw_deg']:.1f} deg (hypotheses {hyp})")
     if "stage5_marker_fit_mm" in info:
         lines.append(f"mean marker fit: {info['stage5_marker_fit_mm']:.1f} mm")
+    if "track_stitching" in info:
+        ts = info["track_stitching"]
+        if ts["kept"]:
+            lines.append(f"track stitching: {ts['columns']} columns are {ts['markers']} markers on the first solve's body; "
+                         f"solved again on the joined columns (marker fit {ts['first_pass_marker_fit_mm']:.1f} mm before)")
+        else:
+            lines.append(f"track stitching: {ts['columns']} columns are {ts['markers']} markers, but the joined columns' solve "
+                         f"fitted worse ({ts['joined_marker_fit_mm']:.1f} mm); the first solve is kept")
     secs = info.get("stage_seconds") or {}
     if method == "uuo-window":
         from uuomocap.solver_core.windowed_solver import bootstrap_starts_summary
