@@ -103,3 +103,28 @@ def merge_columns(positions: np.ndarray, visible: np.ndarray, chains: list[list[
             out[vis[:, c], k] = x[vis[:, c], c]
             seen[:, k] |= vis[:, c]
     return out, seen
+
+
+def carried_positions(surface: np.ndarray, frames: np.ndarray, residual_local: np.ndarray) -> np.ndarray:
+    """(K, 3) where each marker is now: its point's posed surface position ``surface`` (K, 3) plus
+    its last residual ``residual_local`` (K, 3), kept in the frame of its face ``frames`` (K, 3, 3)
+    (rows: edge, in-plane perpendicular, normal), as ``handover_costs`` carries it."""
+    return np.asarray(surface) + np.einsum("kij,ki->kj", np.asarray(frames), np.asarray(residual_local))
+
+
+def handover_links(new_positions: np.ndarray, carried: np.ndarray, max_m: float) -> list[tuple[int, int]]:
+    """The causal half of ``stitch_columns``: (new column, ended marker) pairs, each at most once,
+    by the Hungarian method on the distances of new_positions (N, 3) to carried (K, 3), only those
+    within ``max_m`` metres."""
+    from scipy.optimize import linear_sum_assignment
+
+    new_positions, carried = np.asarray(new_positions, np.float64), np.asarray(carried, np.float64)
+    if not len(new_positions) or not len(carried):
+        return []
+    cost = np.linalg.norm(new_positions[:, None, :] - carried[None, :, :], axis=-1)
+    cost = np.where(np.isfinite(cost), cost, np.inf)
+    allowed = cost <= max_m
+    if not allowed.any():
+        return []
+    rows, cols = linear_sum_assignment(np.where(allowed, cost, 1e6))
+    return [(int(i), int(j)) for i, j in zip(rows, cols) if allowed[i, j]]

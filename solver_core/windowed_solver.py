@@ -59,6 +59,7 @@ from uuomocap.solver_core.body_params import (
     FreeParameters,
     MarkerAttachment,
     interpolate_params,
+    pose_params,
     up_tensor,
 )
 from uuomocap.solver_core.chamfer import vertex_face_table
@@ -83,6 +84,7 @@ from uuomocap.solver_core.staged_solver import (
     solve,
 )
 from uuomocap.solver_core.solve_worker import SolveCancelled
+from uuomocap.solver_core.track_stitching import StitchConfig, carried_positions, handover_links
 
 N_POSE = 72  # root (before the yaw) + 23 body joints, axis-angle
 N_PARAMS = N_POSE + 3  # + translation
@@ -290,6 +292,13 @@ class WindowedSolverConfig:
     cg_iterations: int = 25
     # Change handling (issue 6): an unassigned marker seen this many frames gets a surface point.
     new_track_frames: int = 10
+    # Beyond that: a new column whose first sample is where a marker that ended within max_gap_s (a
+    # column no longer seen, a tracker slot whose track changed) would be now - its last residual,
+    # in the frame of its face, carried on this frame's pose - within max_handover_m takes that
+    # marker's point at once (track_stitching's handover, causal; the offline solve joins columns
+    # the same way).  Without it an unlabelled export's fragments wait new_track_frames and then get
+    # a point from those frames alone.  None = off.
+    handover: StitchConfig | None = StitchConfig()
     # A marker whose residual exceeds this for slip_frames visible frames is re-assigned.
     slip_threshold_m: float = 0.03
     slip_frames: int = 15
@@ -493,7 +502,7 @@ class _Frame:
     """Per-frame state shared by the pending window, the context and the history rings."""
 
     __slots__ = ("stamp", "index", "markers", "visible", "theta", "trans", "prior", "prior_weight", "residual", "joints",
-                 "video_prior")
+                 "video_prior", "identity")
 
     def __init__(self, stamp, index, markers, visible):
         self.stamp = int(stamp)
@@ -507,6 +516,7 @@ class _Frame:
         self.residual = math.nan
         self.joints = None
         self.video_prior = False  # ``prior`` is the video's (else the previous frame's pose)
+        self.identity = None  # (M,) which marker each column held then (WindowedSolver._identity)
 
     # what a revision reads of a refined frame
     REVISED_FROM = ("stamp", "index", "markers", "visible", "theta", "trans", "prior")
@@ -832,6 +842,11 @@ class WindowedSolver:
         self._track_ids = None
         self._seen_run = None
         self._slip_run = None
+        # per column, which marker it holds: a new track (a changed track id) is a new marker, a
+        # handover continues the ended one's; the lock upgrades solve each marker as one column
+        self._identity = np.zeros(0, dtype=np.int64)
+        self._next_identity = 0
+        self._forget_sightings()
         self._degrade_run = 0
         self._since_recheck = 0
         self._recheck_groups: deque = deque()  # marker groups of the re-check in progress
@@ -896,10 +911,13 @@ class WindowedSolver:
             self.num_markers = pos.shape[0]
             self._seen_run = np.zeros(pos.shape[0], dtype=np.int64)
             self._slip_run = np.zeros(pos.shape[0], dtype=np.int64)
+            self._forget_sightings(pos.shape[0])
+            self._identity, self._next_identity = np.arange(pos.shape[0]), pos.shape[0]
         frame = _Frame(stamp_ns, self._index if frame_index is None else frame_index, np.where(vis[:, None], pos, np.nan), vis)
         self._index += 1
         self.stats["frames"] += 1
         self._handle_track_ids(track_ids)
+        frame.identity = self._identity.copy()
         if not self.locked:
             return self._collect_bootstrap(frame)
         t0 = time.perf_counter()
@@ -1295,11 +1313,18 @@ class WindowedSolver:
             return None
         return tuple(self.model.joint_names.index(n) for n in diag.get("part_joints", []))
 
-    def _lock_from(self, res) -> tuple:
-        """The lock (``_LOCK_FIELDS``) a staged-solver result implies."""
+    def _lock_from(self, res, column_owner: np.ndarray | None = None) -> tuple:
+        """The lock (``_LOCK_FIELDS``) a staged-solver result implies.  column_owner (M,): the
+        result's marker each column holds (-1: none), when the solve ran on markers joined from
+        columns (``_upgrade_inputs``); None: the result's markers are the columns."""
         diag = res.diagnostics
         joints = self._part_joints_of(res) or ()
-        return (res.attachment.face_ids.numpy().astype(np.int64).copy(), res.attachment.bary.double().numpy().copy(),
+        faces, bary = res.attachment.face_ids.numpy().astype(np.int64), res.attachment.bary.double().numpy()
+        if column_owner is not None:
+            owner = np.asarray(column_owner)
+            faces = np.where(owner >= 0, faces[np.maximum(owner, 0)], -1)
+            bary = np.where(owner[:, None] >= 0, bary[np.maximum(owner, 0)], 0.0)
+        return (faces.copy(), bary.copy(),
                 res.params.betas.detach().clone(), float(res.params.yaw),
                 np.asarray(diag.get("camera_tilt", np.eye(3)), dtype=np.float64),
                 part_vertex_ids(self.model, joints) if joints else None)
@@ -1309,9 +1334,10 @@ class WindowedSolver:
             setattr(self, name, value)
         self._prepare_lock()
 
-    def _adopt_lock(self, res) -> None:
-        """Lock shape, yaw, camera tilt and correspondence from a staged-solver result."""
-        lock = self._lock_from(res)
+    def _adopt_lock(self, res, column_owner: np.ndarray | None = None) -> None:
+        """Lock shape, yaw, camera tilt and correspondence from a staged-solver result
+        (column_owner: ``_lock_from``'s)."""
+        lock = self._lock_from(res, column_owner)
         self.part_joints = self._part_joints_of(res)  # the part the lock upgrades re-solve
         # the solver estimated the video camera's tilt; every later prior root gets the same tilt,
         # and priors already attached to frames in flight carry the old one: swap it
@@ -1323,6 +1349,7 @@ class WindowedSolver:
                 for f, prior in zip(frames, priors):
                     f.prior = prior
         self._set_lock(lock)
+        self._forget_sightings(len(self.face_ids))  # residuals measured on the old lock's body
         self.labels_version += 1
         self.locked = True
         self._lock_age = 0
@@ -1398,6 +1425,7 @@ class WindowedSolver:
                    jacobian: bool = True, joint_jacobian: bool = False) -> dict:
         """Residuals and Jacobians for B frames.  theta (B,72), trans (B,3), markers (B,M,3), vis (B,M).
         Returns dict: pred (B,Ma,3), resid (B,Ma,3) pred - marker (0 where not visible), w (B,Ma),
+        surface (B,Ma,3) the points without the marker offset, corners (B,Ma,3,3) their posed faces,
         residual (B,) mean distance, joints (B,24,3), root_world (B,3,3), J (B,Ma,3,75),
         GJ (B,72,75) joint Jacobian."""
         B = theta.shape[0]
@@ -1423,7 +1451,7 @@ class WindowedSolver:
             pred = s + c.marker_offset_m * d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-9)
         resid = np.where(w[..., None] > 0, pred - np.nan_to_num(mk), 0.0)
         dist = np.linalg.norm(resid, axis=-1)
-        res = {"pred": pred, "resid": resid, "w": w, "dist": dist,
+        res = {"pred": pred, "resid": resid, "w": w, "dist": dist, "surface": s, "corners": pc,
                "residual": (dist * w).sum(1) / np.maximum(w.sum(1), 1.0),
                "joints": pj + trans[:, None, :], "root_world": grot[:, 0]}
         if jacobian:
@@ -1787,10 +1815,13 @@ class WindowedSolver:
         if track_ids is None:
             return
         ids = np.asarray(track_ids).reshape(-1)
-        if self._track_ids is not None and self.locked:
+        if self._track_ids is not None and len(ids) == len(self._track_ids):
             changed = np.flatnonzero(ids != self._track_ids)
             if len(changed):
-                self._unassign(changed)
+                if self.locked:
+                    self._unassign(changed)
+                self._identity[changed] = self._next_identity + np.arange(len(changed))
+                self._next_identity += len(changed)
         self._track_ids = ids.copy()
 
     def _unassign(self, markers: np.ndarray) -> None:
@@ -1798,6 +1829,7 @@ class WindowedSolver:
         if self.face_ids is None or not len(markers):
             return
         was = self.face_ids[markers] >= 0
+        self._end_sightings(markers)
         self.face_ids[markers] = -1
         self.bary[markers] = 0.0
         self._seen_run[markers] = 0
@@ -1823,6 +1855,10 @@ class WindowedSolver:
             self.stats["slip_storms"] = self.stats.get("slip_storms", 0) + 1
         self._slip_run = np.where(over, self._slip_run + 1, np.where(vis, 0, self._slip_run))
         slipped = np.flatnonzero(self._slip_run >= c.slip_frames)
+        self._remember_sightings(frame, lin)
+        first_seen = np.flatnonzero(vis & ~assigned & (self._seen_run == 0))
+        if len(first_seen) and c.handover is not None and self._hand_over(frame, first_seen):
+            assigned = self.face_ids >= 0
         # unassigned markers seen long enough
         self._seen_run = np.where(vis & ~assigned, self._seen_run + 1, np.where(assigned, 0, 0))
         fresh = np.flatnonzero(self._seen_run >= c.new_track_frames)
@@ -1868,6 +1904,80 @@ class WindowedSolver:
                 and self._lock_age >= c.recheck_frames and not self._recheck_groups):
             self._since_recheck = 0
             self._queue_recheck()
+
+    _NEVER = -(1 << 62)
+
+    def _forget_sightings(self, markers: int = 0) -> None:
+        """Per marker column: the frame it was last seen assigned, its point then and its residual in
+        the frame of that point's face (``_remember_sightings``), and the ended tracks' ones."""
+        self._last_seen = np.full(markers, self._NEVER, dtype=np.int64)
+        self._last_face = np.full(markers, -1, dtype=np.int64)
+        self._last_bary = np.zeros((markers, 3))
+        self._last_local = np.zeros((markers, 3))
+        self._ended: list[tuple[int, int, np.ndarray, np.ndarray, int]] = []  # (last seen, face, bary, residual, marker)
+
+    def _remember_sightings(self, frame: _Frame, lin: dict) -> None:
+        a = self._assigned
+        seen = frame.visible[a]
+        if not seen.any():
+            return
+        cols = a[seen]
+        local = np.einsum("kij,kj->ki", _triangle_frames(lin["corners"][0][seen]), frame.markers[cols] - lin["surface"][0][seen])
+        self._last_seen[cols] = self._index - 1
+        self._last_face[cols] = self.face_ids[cols]
+        self._last_bary[cols] = self.bary[cols]
+        self._last_local[cols] = local
+
+    def _end_sightings(self, markers: np.ndarray) -> None:
+        """Markers whose column now holds another track: their last sightings become ended tracks."""
+        for m in np.asarray(markers).reshape(-1):
+            if self._last_face[m] >= 0 and self._last_seen[m] != self._NEVER:
+                self._ended.append((int(self._last_seen[m]), int(self._last_face[m]), self._last_bary[m].copy(),
+                                    self._last_local[m].copy(), int(self._identity[m])))
+        self._last_seen[markers] = self._NEVER
+        self._last_face[markers] = -1
+
+    def _hand_over(self, frame: _Frame, first_seen: np.ndarray) -> int:
+        """Give each column seen for the first time the point of the marker that ended and would be
+        where it is (``WindowedSolverConfig.handover``).  Returns how many took one."""
+        c = self.config.handover
+        now = self._index - 1
+        max_gap = c.max_gap_s * (self.rate_hz or 120.0)
+        # bounded: ended tracks older than the gap are dropped
+        self._ended = [e for e in self._ended if now - e[0] <= max_gap][-4 * len(self.face_ids):]
+        cols = np.flatnonzero(~frame.visible & (self._last_face >= 0) & (now - self._last_seen <= max_gap))
+        if not len(cols) and not self._ended:
+            return 0
+        faces = np.concatenate([self._last_face[cols], np.array([e[1] for e in self._ended], dtype=np.int64)])
+        bary = np.concatenate([self._last_bary[cols], np.array([e[2] for e in self._ended]).reshape(-1, 3)])
+        local = np.concatenate([self._last_local[cols], np.array([e[3] for e in self._ended]).reshape(-1, 3)])
+        theta = torch.as_tensor(frame.theta, dtype=torch.float32)[None]
+        params = BodyParams(theta[:, :3], theta[:, 3:].reshape(1, 23, 3), torch.as_tensor(frame.trans, dtype=torch.float32)[None],
+                            self.betas, torch.tensor(self.yaw, dtype=torch.float32))
+        corners = self.model.faces[torch.as_tensor(faces)].reshape(-1)
+        with torch.no_grad():
+            pc = pose_params(self.model, params, self.up, points=lbs.SurfacePoints.from_vertex_ids(corners)).vertices[0]
+        pc = pc.double().numpy().reshape(-1, 3, 3)
+        surface = (pc * bary[:, :, None]).sum(1)
+        links = handover_links(frame.markers[first_seen], carried_positions(surface, _triangle_frames(pc), local), c.max_handover_m)
+        used_ended = set()
+        for i, k in links:
+            m = first_seen[i]
+            self.face_ids[m], self.bary[m] = faces[k], bary[k]
+            if k < len(cols):  # the marker goes on in column m: it hands over once
+                self._identity[m] = self._identity[cols[k]]
+                self._last_seen[cols[k]], self._last_face[cols[k]] = self._NEVER, -1
+            else:
+                self._identity[m] = self._ended[k - len(cols)][4]
+                used_ended.add(k - len(cols))
+            frame.identity[m] = self._identity[m]
+        if not links:
+            return 0
+        self._ended = [e for j, e in enumerate(self._ended) if j not in used_ended]
+        self.stats["handovers"] = self.stats.get("handovers", 0) + len(links)
+        self.labels_version += 1
+        self._prepare_lock()
+        return len(links)
 
     def _keep_in_reservoir(self, f: _Frame) -> None:
         """Keep every stride-th refined frame; when full, drop every other one and double the
@@ -1947,10 +2057,33 @@ class WindowedSolver:
         # what the lock check reads (_compare_locks): the frames' refined poses and priors under the current lock
         reservoir = {"markers": markers, "visible": visible, "theta": np.stack([f.theta for f in frames]),
                      "trans": np.stack([f.trans for f in frames]), "prior": np.stack([f.prior for f in frames])}
+        joined = self._joined_markers(frames, markers, visible)
+        if joined is not None:  # the solve sees each marker as one column; its result goes back to the columns
+            markers, visible, reservoir["column_owner"] = joined
         return {"markers": markers, "visible": visible, "prior": prior, "shape": shape,
                 "generation": self._lock_generation, "labels_version": self.labels_version,
                 "cancel": threading.Event(), "t0": time.perf_counter(),
                 "stride": self._reservoir_stride, "reservoir": reservoir}
+
+    def _joined_markers(self, frames: list[_Frame], markers: np.ndarray, visible: np.ndarray):
+        """The frames' markers with each marker's columns joined into one (``_identity``):
+        (F,K,3), (F,K) and the column owner (M,) (-1: a column whose marker is not in the frames),
+        or None when every column held one marker throughout (nothing to join)."""
+        M = markers.shape[1]
+        ids = np.stack([f.identity if f.identity is not None and len(f.identity) == M else np.arange(M) for f in frames])
+        if (ids == np.arange(M)).all() and (self._identity == np.arange(M)).all():
+            return None
+        seen_ids = np.unique(ids[visible])
+        slot = np.searchsorted(seen_ids, ids)
+        slot_ok = visible & (seen_ids[np.minimum(slot, len(seen_ids) - 1)] == ids) if len(seen_ids) else visible & False
+        joined = np.full((len(frames), len(seen_ids), 3), np.nan)
+        seen = np.zeros((len(frames), len(seen_ids)), dtype=bool)
+        f_idx, c_idx = np.nonzero(slot_ok)
+        joined[f_idx, slot[f_idx, c_idx]] = markers[f_idx, c_idx]
+        seen[f_idx, slot[f_idx, c_idx]] = True
+        pos = np.searchsorted(seen_ids, self._identity)
+        owner = np.where((pos < len(seen_ids)) & (seen_ids[np.minimum(pos, len(seen_ids) - 1)] == self._identity), pos, -1)
+        return joined, seen, owner
 
     def _solve_upgrade(self, job: dict):
         return solve(job["markers"], job["visible"], self.rate_hz or 120.0, self.up_axis, job["prior"], job["shape"],
@@ -2005,7 +2138,7 @@ class WindowedSolver:
         if job["generation"] != self._lock_generation:
             self.stats["upgrades_rejected"] = self.stats.get("upgrades_rejected", 0) + 1
             return
-        new = self._lock_from(res)
+        new = self._lock_from(res, job["reservoir"].get("column_owner"))
         if not self._same_part(new[5], self.allowed_ids):
             # An upgrade refines the lock; it does not move the markers to another body part (or
             # between full and partial body): a still leg's mirror image fits its markers as well
@@ -2025,7 +2158,7 @@ class WindowedSolver:
             self.stats["upgrades_rejected"] = self.stats.get("upgrades_rejected", 0) + 1
             return
         old_yaw = self.yaw
-        self._adopt_lock(res)
+        self._adopt_lock(res, job["reservoir"].get("column_owner"))
         self._reyaw_in_flight(old_yaw)
         self._start_revision()
 
@@ -2041,7 +2174,8 @@ class WindowedSolver:
         job["labels_version"] = self.labels_version
         job["result"] = res
         job["worker_job"], future = self._worker.call(judge_locks_in_worker, self.config, self.up_axis, self.rate_hz,
-                                                      self._lock_copy(), self._lock_from(res), job["reservoir"])
+                                                      self._lock_copy(), self._lock_from(res, job["reservoir"].get("column_owner")),
+                                                      job["reservoir"])
         self._upgrade_job = (future, job)
         self.stats["upgrade_judged_again"] = self.stats.get("upgrade_judged_again", 0) + 1
 
@@ -2183,7 +2317,7 @@ def compare_upgrade_locks(res, worker_state: dict, config: WindowedSolverConfig,
     ``after``): ``WindowedSolver._compare_locks`` of the result's lock against ``lock``, the lock
     the upgrade started from, on the reservoir frames.  The stream's process then only adopts.
     A lock-free solver on the same models and config is kept in the worker's cache."""
-    new = _lock_free_solver(worker_state, config, up_axis, rate_hz)._lock_from(res)
+    new = _lock_free_solver(worker_state, config, up_axis, rate_hz)._lock_from(res, reservoir.get("column_owner"))
     return judge_locks_in_worker(worker_state, None, config, up_axis, rate_hz, lock, new, reservoir)
 
 

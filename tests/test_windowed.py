@@ -398,6 +398,8 @@ def test_a_recheck_runs_in_marker_groups_one_per_hop_between_passes(streamed):
 
 def test_new_marker_track_gets_assigned(streamed):
     s = _clone(streamed)
+    # a new track that no ended marker hands over to (the handover has its own tests, below)
+    s.config = replace(s.config, handover=None)
     md, rows = streamed["md"], streamed["rows"]
     n = md.positions.shape[0]
     order = np.concatenate([np.arange(n - 1, 0, -1), np.arange(n)])
@@ -426,6 +428,77 @@ def test_new_marker_track_gets_assigned(streamed):
                        s._history[-1].visible[None], jacobian=False)
     assert lin["dist"][0][a.index(k)] < 0.03
     assert out[0].kind == "estimate"
+
+
+def test_a_tracker_slot_whose_track_changes_takes_the_ended_markers_point_at_once(streamed):
+    s = _clone(streamed)
+    md, rows = streamed["md"], streamed["rows"]
+    n = md.positions.shape[0]
+    order = np.concatenate([np.arange(n - 1, 0, -1), np.arange(n)])
+    k = int(np.flatnonzero(s.face_ids >= 0)[3])
+    face, bary = int(s.face_ids[k]), s.bary[k].copy()
+    ids = np.arange(md.positions.shape[1])
+    last = int(md.stamps_ns[-1])
+    for step, (st, j, prior) in enumerate(_frames(md, rows, 0, 6, last, order)):
+        s.add_prior(*prior)
+        if step == 2:
+            ids = ids.copy()
+            ids[k] = 1000  # a new track id in slot k, on the same marker (a tracker lost and found it)
+        s.add_markers(st, md.positions[j], md.visible[j], track_ids=ids)
+        if step == 2:  # forgotten, then handed back within the same frame: no new_track_frames wait
+            assert s.face_ids[k] == face and np.allclose(s.bary[k], bary)
+            assert s.stats["handovers"] == 1
+    assert s.stats["new_tracks"] == 0
+
+
+def test_a_column_that_starts_where_an_ended_marker_would_be_takes_its_point(streamed):
+    """An unlabelled export: marker k's column ends, the marker comes back in another column."""
+    s = _clone(streamed)
+    md, rows = streamed["md"], streamed["rows"]
+    n = md.positions.shape[0]
+    order = np.concatenate([np.arange(n - 1, 0, -1), np.arange(n)])
+    assigned = np.flatnonzero(s.face_ids >= 0)
+    k, spare = int(assigned[3]), int(assigned[20])
+    face, bary = int(s.face_ids[k]), s.bary[k].copy()
+    s._unassign(np.array([spare]))  # a free column for the comeback, seen before by nobody we track
+    s._ended = []
+    last = int(md.stamps_ns[-1])
+    for step, (st, j, prior) in enumerate(_frames(md, rows, 0, 12, last, order)):
+        s.add_prior(*prior)
+        pos, vis = md.positions[j].copy(), md.visible[j].copy()
+        vis[spare] = False
+        if step >= 2:
+            vis[k] = False  # k's column ends
+        if step >= 6:  # 4 frames later the marker is back, in the spare column
+            pos[spare], vis[spare] = md.positions[j, k], md.visible[j, k]
+        s.add_markers(st, np.where(vis[:, None], pos, np.nan), vis)
+        if step == 6:
+            assert vis[spare] and s.face_ids[spare] == face and np.allclose(s.bary[spare], bary)
+    assert s.stats["handovers"] == 1 and s.stats["new_tracks"] == 0
+    # once handed over, the ended column's marker is not handed to a second column
+    assert s._last_face[k] == -1
+
+
+def test_no_handover_to_a_column_far_from_every_ended_marker(streamed):
+    s = _clone(streamed)
+    md, rows = streamed["md"], streamed["rows"]
+    n = md.positions.shape[0]
+    order = np.concatenate([np.arange(n - 1, 0, -1), np.arange(n)])
+    assigned = np.flatnonzero(s.face_ids >= 0)
+    k, spare = int(assigned[3]), int(assigned[20])
+    s._unassign(np.array([spare]))
+    s._ended = []
+    last = int(md.stamps_ns[-1])
+    for step, (st, j, prior) in enumerate(_frames(md, rows, 0, 8, last, order)):
+        s.add_prior(*prior)
+        pos, vis = md.positions[j].copy(), md.visible[j].copy()
+        vis[spare] = False
+        if step >= 2:
+            vis[k] = False
+        if step >= 4:  # a marker 10 cm from where k's would be
+            pos[spare], vis[spare] = md.positions[j, k] + np.array([0.0, 0.1, 0.0]), True
+        s.add_markers(st, np.where(vis[:, None], pos, np.nan), vis)
+    assert s.face_ids[spare] == -1 and s.stats.get("handovers", 0) == 0
 
 
 def test_buffers_do_not_grow_with_the_take(streamed):

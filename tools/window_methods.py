@@ -247,6 +247,7 @@ def uuo_window(session_dir: Path, out_npz: Path, body_model: str | None = None, 
     info = {"method": "uuo-window", "stage_seconds": secs, "steady_fps": round(run.steady_fps, 1),
             "steady_fps_cpu": round(run.steady_fps_cpu, 1),
             "rebootstraps": run.stats.get("rebootstraps", 0), "reassigned": run.stats.get("reassigned", 0),
+            "new_tracks": run.stats.get("new_tracks", 0), "handovers": run.stats.get("handovers", 0),
             "revised_frames": int(np.isfinite(run.revised["poses"]).all(axis=1).sum()) if run.revised else 0,
             # Stage-5 marker fit (mm) of each bootstrap start, and the one locked
             "bootstrap_start_fits_mm": run.stats.get("bootstrap_start_fits_mm"), "bootstrap_start_chosen": run.stats.get("bootstrap_start_chosen"),
