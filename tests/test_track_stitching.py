@@ -98,3 +98,22 @@ def test_bench_merge_tracks_counts_joined_pure_and_whole_markers(capsys):
     assert row["markers"] == 39 and row["columns"] > 39
     assert row["truth"]["whole_markers"] == 39 and row["truth"]["chains"] == 39  # true points and poses: every marker whole
     assert row["solved"]["pure"] >= 0.9 * row["solved"]["chains"]
+
+
+def test_a_handover_links_each_new_column_to_the_nearest_carried_marker_once():
+    from uuomocap.solver_core.track_stitching import carried_positions, handover_links
+
+    # two ended markers on faces turned 90 degrees about z; residuals 1 cm along each face's first edge
+    surface = np.array([[0.0, 0.0, 1.0], [0.05, 0.0, 1.0]])
+    turn = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # rows: edge along y, perpendicular along -x
+    frames = np.stack([np.eye(3), turn])
+    local = np.array([[0.01, 0.0, 0.0], [0.01, 0.0, 0.0]])
+    carried = carried_positions(surface, frames, local)
+    np.testing.assert_allclose(carried, [[0.01, 0.0, 1.0], [0.05, 0.01, 1.0]], atol=1e-12)
+    # the first new column is 2 mm from marker 1, the second 3 mm from marker 0, the third near neither
+    new = np.array([[0.05, 0.012, 1.0], [0.013, 0.0, 1.0], [0.5, 0.5, 1.0]])
+    assert sorted(handover_links(new, carried, 0.04)) == [(0, 1), (1, 0)]
+    # one marker, two candidates: only the nearer takes it
+    assert handover_links(np.array([[0.012, 0.0, 1.0], [0.015, 0.0, 1.0]]), carried[:1], 0.04) == [(0, 0)]
+    assert handover_links(new, carried, 0.001) == []
+    assert handover_links(np.zeros((0, 3)), carried, 0.04) == []

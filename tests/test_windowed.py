@@ -501,6 +501,29 @@ def test_no_handover_to_a_column_far_from_every_ended_marker(streamed):
     assert s.face_ids[spare] == -1 and s.stats.get("handovers", 0) == 0
 
 
+def test_a_lock_upgrade_solves_each_markers_columns_as_one(streamed):
+    from uuomocap.solver_core.windowed_solver import _Frame
+
+    s = _clone(streamed)
+    M = s.num_markers
+    x = np.arange(3 * M * 3, dtype=float).reshape(3, M, 3)
+    vis = np.ones((3, M), bool)
+    vis[1:, 2] = False  # marker 2's column ends after frame 0 ...
+    vis[0, 5] = False   # ... and it comes back in column 5, empty until then
+    frames = [_Frame(i, i, x[i], vis[i]) for i in range(3)]
+    for f in frames:
+        f.identity = np.arange(M)
+    assert s._joined_markers(frames, x, vis) is None  # every column one marker: nothing to join
+    for f in frames[1:]:
+        f.identity[5] = 2  # the handover gave column 5 marker 2's identity
+    s._identity = frames[-1].identity.copy()
+    joined, seen, owner = s._joined_markers(frames, x, vis)
+    assert joined.shape == (3, M - 1, 3) and seen.shape == (3, M - 1)  # column 5 never held marker 5 while seen
+    assert owner[2] == owner[5] == 2 and owner[6] == 5 and (owner >= 0).all()
+    np.testing.assert_array_equal(joined[:, 2], np.stack([x[0, 2], x[1, 5], x[2, 5]]))
+    assert seen[:, 2].all() and np.isnan(joined[~seen]).all()
+
+
 def test_buffers_do_not_grow_with_the_take(streamed):
     s = _clone(streamed)
     # the reservoir keeps sampling; the upgrade solves themselves are tested on their own
