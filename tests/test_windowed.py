@@ -524,6 +524,21 @@ def test_a_lock_upgrade_solves_each_markers_columns_as_one(streamed):
     assert seen[:, 2].all() and np.isnan(joined[~seen]).all()
 
 
+def test_columns_the_bootstrap_joined_keep_one_identity(streamed):
+    from uuomocap.solver_core.windowed_solver import _Frame
+
+    s = _clone(streamed)
+    M = s.num_markers
+    window = [_Frame(i, i, np.zeros((M, 3)), np.ones(M, bool)) for i in range(3)]
+    for f in window:
+        f.identity = np.arange(M)
+    s._join_identities({"kept": False, "chains": [[1, 7]]}, window)  # a joined pass that was dropped: nothing joined
+    assert (s._identity == np.arange(M)).all()
+    s._join_identities({"kept": True, "chains": [[1, 7, 9], [2], [3, 4]]}, window)
+    for ids in [s._identity, *(f.identity for f in window), *(f.identity for f in s._history)]:
+        assert ids[7] == ids[9] == ids[1] == 1 and ids[4] == ids[3] == 3 and ids[2] == 2
+
+
 def test_buffers_do_not_grow_with_the_take(streamed):
     s = _clone(streamed)
     # the reservoir keeps sampling; the upgrade solves themselves are tested on their own
