@@ -451,53 +451,45 @@ def test_a_tracker_slot_whose_track_changes_takes_the_ended_markers_point_at_onc
     assert s.stats["new_tracks"] == 0
 
 
-def test_a_column_that_starts_where_an_ended_marker_would_be_takes_its_point(streamed):
-    """An unlabelled export: marker k's column ends, the marker comes back in another column."""
+def _comeback(streamed, offset, steps: int = 12):
+    """Marker k's column ends at step 2; from step 6 the marker (moved by ``offset``) is seen in a
+    column free until then.  Returns the solver, k's point then, k and that column."""
     s = _clone(streamed)
     md, rows = streamed["md"], streamed["rows"]
     n = md.positions.shape[0]
     order = np.concatenate([np.arange(n - 1, 0, -1), np.arange(n)])
     assigned = np.flatnonzero(s.face_ids >= 0)
     k, spare = int(assigned[3]), int(assigned[20])
-    face, bary = int(s.face_ids[k]), s.bary[k].copy()
+    point = (int(s.face_ids[k]), s.bary[k].copy())
     s._unassign(np.array([spare]))  # a free column for the comeback, seen before by nobody we track
     s._ended = []
-    last = int(md.stamps_ns[-1])
-    for step, (st, j, prior) in enumerate(_frames(md, rows, 0, 12, last, order)):
+    for step, (st, j, prior) in enumerate(_frames(md, rows, 0, steps, int(md.stamps_ns[-1]), order)):
         s.add_prior(*prior)
         pos, vis = md.positions[j].copy(), md.visible[j].copy()
         vis[spare] = False
         if step >= 2:
             vis[k] = False  # k's column ends
         if step >= 6:  # 4 frames later the marker is back, in the spare column
-            pos[spare], vis[spare] = md.positions[j, k], md.visible[j, k]
+            pos[spare], vis[spare] = md.positions[j, k] + offset, True
         s.add_markers(st, np.where(vis[:, None], pos, np.nan), vis)
         if step == 6:
-            assert vis[spare] and s.face_ids[spare] == face and np.allclose(s.bary[spare], bary)
+            s.stats["spare_face_at_comeback"] = int(s.face_ids[spare])
+            s.stats["spare_bary_at_comeback"] = s.bary[spare].copy()
+    return s, point, k, spare
+
+
+def test_a_column_that_starts_where_an_ended_marker_would_be_takes_its_point(streamed):
+    """An unlabelled export: marker k's column ends, the marker comes back in another column."""
+    s, (face, bary), k, spare = _comeback(streamed, np.zeros(3))
+    # taken in the comeback's first frame
+    assert s.stats["spare_face_at_comeback"] == face and np.allclose(s.stats["spare_bary_at_comeback"], bary)
     assert s.stats["handovers"] == 1 and s.stats["new_tracks"] == 0
     # once handed over, the ended column's marker is not handed to a second column
-    assert s._last_face[k] == -1
+    assert s._last_face[k] == -1 and s._identity[spare] == s._identity[k]
 
 
 def test_no_handover_to_a_column_far_from_every_ended_marker(streamed):
-    s = _clone(streamed)
-    md, rows = streamed["md"], streamed["rows"]
-    n = md.positions.shape[0]
-    order = np.concatenate([np.arange(n - 1, 0, -1), np.arange(n)])
-    assigned = np.flatnonzero(s.face_ids >= 0)
-    k, spare = int(assigned[3]), int(assigned[20])
-    s._unassign(np.array([spare]))
-    s._ended = []
-    last = int(md.stamps_ns[-1])
-    for step, (st, j, prior) in enumerate(_frames(md, rows, 0, 8, last, order)):
-        s.add_prior(*prior)
-        pos, vis = md.positions[j].copy(), md.visible[j].copy()
-        vis[spare] = False
-        if step >= 2:
-            vis[k] = False
-        if step >= 4:  # a marker 10 cm from where k's would be
-            pos[spare], vis[spare] = md.positions[j, k] + np.array([0.0, 0.1, 0.0]), True
-        s.add_markers(st, np.where(vis[:, None], pos, np.nan), vis)
+    s, _, k, spare = _comeback(streamed, np.array([0.0, 0.1, 0.0]), steps=9)  # 10 cm from where k's would be
     assert s.face_ids[spare] == -1 and s.stats.get("handovers", 0) == 0
 
 
