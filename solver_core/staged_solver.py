@@ -54,7 +54,7 @@ from uuomocap.solver_core.pose_fitting import PoseFittingConfig, fit_pose
 from uuomocap.solver_core.prior_preparation import BodyPrior
 from uuomocap.solver_core.rotations import matrix_to_axis_angle
 from uuomocap.solver_core.segmentation import SegmentationConfig, segment_markers
-from uuomocap.solver_core.track_stitching import StitchConfig
+from uuomocap.solver_core.track_stitching import StitchConfig, merge_columns, stitch_columns
 from uuomocap.solver_core.weak_segment_correspondence import WeakSegmentConfig, weak_segment_correspondence
 
 STAGES = ("segmentation", "matching", "stage1", "stage2", "stage3", "stage4", "stage5")
@@ -157,8 +157,8 @@ class SolverConfig:
     # the columns the solved body shows to be one marker (track_stitching) are joined and the take
     # is solved again on the joined columns; each column takes its marker's result.  Whole columns
     # never link (a link needs one column to end before the next starts), so such takes solve once.
-    # Session 46, 'breaks 1%' (40 markers in 117-134 columns, nine 8 s takes): MPJPE 16.1 -> 10.4 mm
-    # (whole columns: 10.2), the arms take that had failed 34.2 -> 10.5.  None = off.
+    # Session 46, 'breaks 1%' (40 markers in 117-134 columns, nine 8 s takes): MPJPE 16.1 -> 10.1 mm
+    # with the fit check below (whole columns: 10.2), the arms take that had failed 34.2 -> 10.5.  None = off.
     track_stitching: StitchConfig | None = StitchConfig()
     # The second pass is kept unless its markers fit worse than this times the first pass's (Stage-5
     # marker fit).  The same nine: joined columns fit 0.14-0.97x the first pass's on eight, and on the
@@ -318,8 +318,6 @@ def solve(
     progress.stage_end("track_stitching", stitch_s)
     if all(len(chain) == 1 for chain in chains):
         return first
-    from uuomocap.solver_core.track_stitching import merge_columns
-
     joined, joined_vis = merge_columns(markers, vis, chains)
     again = solve_columns(joined, joined_vis, rate_hz, up_axis, prior, shape_prior, model, chamfer_model, config, progress)
     fits = first.diagnostics["stage5_marker_fit_mm"], again.diagnostics["stage5_marker_fit_mm"]
@@ -337,7 +335,6 @@ def marker_chains(model, result: SolveResult, markers: np.ndarray, visible: np.n
 
     markers (T,M,3) metres; visible (T,M) bool."""
     from uuomocap.solver_core.gap_fill import solved_marker_positions
-    from uuomocap.solver_core.track_stitching import stitch_columns
 
     att = result.attachment
     predicted, frames = solved_marker_positions(

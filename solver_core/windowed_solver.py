@@ -1874,10 +1874,11 @@ class WindowedSolver:
             self.stats["slip_storms"] = self.stats.get("slip_storms", 0) + 1
         self._slip_run = np.where(over, self._slip_run + 1, np.where(vis, 0, self._slip_run))
         slipped = np.flatnonzero(self._slip_run >= c.slip_frames)
-        self._remember_sightings(frame, lin)
-        first_seen = np.flatnonzero(vis & ~assigned & (self._seen_run == 0))
-        if len(first_seen) and c.handover is not None and self._hand_over(frame, first_seen):
-            assigned = self.face_ids >= 0
+        if c.handover is not None:  # the sightings only serve the handover
+            self._remember_sightings(frame, lin)
+            first_seen = np.flatnonzero(vis & ~assigned & (self._seen_run == 0))
+            if len(first_seen) and self._hand_over(frame, first_seen):
+                assigned = self.face_ids >= 0
         # unassigned markers seen long enough
         self._seen_run = np.where(vis & ~assigned, self._seen_run + 1, np.where(assigned, 0, 0))
         fresh = np.flatnonzero(self._seen_run >= c.new_track_frames)
