@@ -1355,7 +1355,7 @@ class WindowedSolver:
                 for f, prior in zip(frames, priors):
                     f.prior = prior
         self._set_lock(lock)
-        self._forget_sightings(len(self.face_ids))  # residuals measured on the old lock's body
+        self._repoint_sightings()
         self.labels_version += 1
         self.locked = True
         self._lock_age = 0
@@ -1947,6 +1947,22 @@ class WindowedSolver:
         self._last_face[cols] = self.face_ids[cols]
         self._last_bary[cols] = self.bary[cols]
         self._last_local[cols] = local
+
+    def _repoint_sightings(self) -> None:
+        """After a lock adoption the recent sightings and ended tracks keep their frame and marker
+        but take the new lock's point of that marker, the marker at rest on its normal: their
+        residuals were measured on the old lock's body.  (Forgetting them instead left a marker
+        that ended just before an adoption nothing to hand over to.)"""
+        rest = np.array([0.0, 0.0, self.config.ik.marker_offset_m])
+        held = self.face_ids >= 0
+        point = {int(self._identity[m]): m for m in np.flatnonzero(held)[::-1]}  # marker -> a column of it
+        keep = (self._last_face >= 0) & held
+        self._last_seen[~keep] = self._NEVER
+        self._last_face = np.where(keep, self.face_ids, -1)
+        self._last_bary[keep] = self.bary[keep]
+        self._last_local[keep] = rest
+        self._ended = [(seen, int(self.face_ids[point[marker]]), self.bary[point[marker]].copy(), rest.copy(), marker)
+                       for seen, _, _, _, marker in self._ended if marker in point]
 
     def _end_sightings(self, markers: np.ndarray) -> None:
         """Markers whose column now holds another track: their last sightings become ended tracks."""

@@ -451,9 +451,10 @@ def test_a_tracker_slot_whose_track_changes_takes_the_ended_markers_point_at_onc
     assert s.stats["new_tracks"] == 0
 
 
-def _comeback(streamed, offset, steps: int = 12):
+def _comeback(streamed, offset, steps: int = 12, adopt_at: int | None = None):
     """Marker k's column ends at step 2; from step 6 the marker (moved by ``offset``) is seen in a
-    column free until then.  Returns the solver, k's point then, k and that column."""
+    column free until then; at step ``adopt_at`` a lock upgrade with the same points is adopted.
+    Returns the solver, k's point then, k and that column."""
     s = _clone(streamed)
     md, rows = streamed["md"], streamed["rows"]
     n = md.positions.shape[0]
@@ -472,6 +473,8 @@ def _comeback(streamed, offset, steps: int = 12):
         if step >= 6:  # 4 frames later the marker is back, in the spare column
             pos[spare], vis[spare] = md.positions[j, k] + offset, True
         s.add_markers(st, np.where(vis[:, None], pos, np.nan), vis)
+        if step == adopt_at:
+            s._adopt_lock(_result_of_lock(s))
         if step == 6:
             s.stats["spare_face_at_comeback"] = int(s.face_ids[spare])
             s.stats["spare_bary_at_comeback"] = s.bary[spare].copy()
@@ -486,6 +489,22 @@ def test_a_column_that_starts_where_an_ended_marker_would_be_takes_its_point(str
     assert s.stats["handovers"] == 1 and s.stats["new_tracks"] == 0
     # once handed over, the ended column's marker is not handed to a second column
     assert s._last_face[k] == -1 and s._identity[spare] == s._identity[k]
+
+
+def _result_of_lock(s):
+    """A staged-solver result whose lock is the solver's current one."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(attachment=SimpleNamespace(face_ids=torch.as_tensor(s.face_ids.copy()), bary=torch.as_tensor(s.bary.copy())),
+                           params=SimpleNamespace(betas=s.betas.clone(), yaw=torch.tensor(s.yaw)),
+                           diagnostics={"camera_tilt": s.camera_tilt.copy(), "full_body": True})
+
+
+def test_a_marker_that_ended_just_before_a_lock_adoption_still_hands_over(streamed):
+    """The sightings outlive the adoption, re-pointed to the new lock's points."""
+    s, (face, bary), k, spare = _comeback(streamed, np.zeros(3), adopt_at=4)
+    assert s.stats["spare_face_at_comeback"] == face and np.allclose(s.stats["spare_bary_at_comeback"], bary)
+    assert s.stats["handovers"] == 1 and s._identity[spare] == s._identity[k]
 
 
 def test_no_handover_to_a_column_far_from_every_ended_marker(streamed):
