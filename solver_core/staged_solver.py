@@ -324,7 +324,7 @@ def solve(
     if fits[1] > config.track_stitching_max_fit_ratio * fits[0]:
         # the joined pass explains the markers worse: its solve went wrong, not the columns' split
         first.diagnostics["track_stitching"] = {"columns": markers.shape[1], "markers": len(chains), "kept": False,
-                                                "joined_marker_fit_mm": fits[1]}
+                                                "joined_marker_fit_mm": fits[1], "chains": [[int(c) for c in chain] for chain in chains]}
         return first
     return _per_column(model, again, chains, markers.shape[1], first, stitch_s)
 

@@ -1253,6 +1253,8 @@ class WindowedSolver:
             self._pending.append(f)
             self._history.append(f)
             out.append(self._result(f, "estimate", lin["root_world"][i]))
+        if c.handover is not None:  # a marker that ends in the window and comes back after it
+            self._remember_sightings(frames, lin)
         self.stats["bootstrap_seconds"].append(round(time.perf_counter() - t0, 3))
         return out
 
@@ -1362,11 +1364,13 @@ class WindowedSolver:
         self._recheck_groups.clear()  # its frames were estimated under the old lock
 
     def _join_identities(self, stitching: dict | None, frames: list[_Frame]) -> None:
-        """Columns the bootstrap's solve joined into one marker (``staged_solver.solve``'s track
+        """Columns the bootstrap's solve found to be one marker (``staged_solver.solve``'s track
         stitching) hold one identity from now on, in the window's frames too: the lock upgrades
-        then solve them as one column (``_joined_markers``)."""
+        then solve them as one column (``_joined_markers``).  Also when the solve of the joined
+        columns was dropped: the chains come from the first solve's body, and a 3 s window's
+        second solve can go wrong on its own (a walk's: marker fit 3.8 -> 15.5 mm on pure chains)."""
         joined = [cols for cols in (stitching or {}).get("chains", []) if len(cols) > 1]
-        if not joined or not stitching.get("kept"):
+        if not joined:
             return
         held = {id(f): f for f in chain(frames, self._frames_in_flight()) if f.identity is not None}.values()
         for columns in joined:
@@ -1875,7 +1879,7 @@ class WindowedSolver:
         self._slip_run = np.where(over, self._slip_run + 1, np.where(vis, 0, self._slip_run))
         slipped = np.flatnonzero(self._slip_run >= c.slip_frames)
         if c.handover is not None:  # the sightings only serve the handover
-            self._remember_sightings(frame, lin)
+            self._remember_sightings([frame], lin)
             first_seen = np.flatnonzero(vis & ~assigned & (self._seen_run == 0))
             if len(first_seen) and self._hand_over(frame, first_seen):
                 assigned = self.face_ids >= 0
@@ -1936,14 +1940,19 @@ class WindowedSolver:
         self._last_local = np.zeros((markers, 3))
         self._ended: list[tuple[int, int, np.ndarray, np.ndarray, int]] = []  # (last seen, face, bary, residual, marker)
 
-    def _remember_sightings(self, frame: _Frame, lin: dict) -> None:
+    def _remember_sightings(self, frames: list[_Frame], lin: dict) -> None:
+        """Each assigned column's last sighting in ``frames`` (the newest frames of the stream, in
+        order; lin: ``_linearize`` of them)."""
         a = self._assigned
-        seen = frame.visible[a]
-        if not seen.any():
+        seen = np.stack([f.visible[a] for f in frames])  # (B, Ma)
+        k = np.flatnonzero(seen.any(axis=0))
+        if not len(k):
             return
-        cols = a[seen]
-        local = np.einsum("kij,kj->ki", _triangle_frames(lin["corners"][0][seen]), frame.markers[cols] - lin["surface"][0][seen])
-        self._last_seen[cols] = self._index - 1
+        last = len(frames) - 1 - np.argmax(seen[::-1, k], axis=0)  # each column's last frame seen
+        cols = a[k]
+        markers = np.stack([frames[i].markers[c] for i, c in zip(last, cols)])
+        local = np.einsum("kij,kj->ki", _triangle_frames(lin["corners"][last, k]), markers - lin["surface"][last, k])
+        self._last_seen[cols] = self._index - len(frames) + last
         self._last_face[cols] = self.face_ids[cols]
         self._last_bary[cols] = self.bary[cols]
         self._last_local[cols] = local
