@@ -451,6 +451,31 @@ def test_a_tracker_slot_whose_track_changes_takes_the_ended_markers_point_at_onc
     assert s.stats["new_tracks"] == 0
 
 
+def test_a_window_of_frames_leaves_each_columns_last_sighting(streamed):
+    """The bootstrap's window feeds the handover: each column's last sighting in the window is
+    the one a frame-by-frame stream would have left (a marker that ends inside the window and comes
+    back after it takes its point back)."""
+    s = _clone(streamed)
+    frames = [copy.deepcopy(f) for f in list(s._history)[-3:]]
+    k = int(s._assigned[3])
+    frames[2].visible[k] = False  # k last seen in the window's middle frame
+    s._forget_sightings(s.num_markers)
+    lin = s._linearize(np.stack([f.theta for f in frames]), np.stack([f.trans for f in frames]),
+                       np.stack([f.markers for f in frames]), np.stack([f.visible for f in frames]), jacobian=False)
+    s._remember_sightings(frames, lin)
+    window = (s._last_seen.copy(), s._last_face.copy(), s._last_local.copy())
+    s._forget_sightings(s.num_markers)
+    index = s._index
+    for i, f in enumerate(frames):  # frame by frame, as the steady state sees them
+        s._index = index - 2 + i
+        one = s._linearize(f.theta[None], f.trans[None], f.markers[None], f.visible[None], jacobian=False)
+        s._remember_sightings([f], one)
+    assert window[0][k] == index - 2 and window[1][k] == s.face_ids[k]
+    np.testing.assert_array_equal(window[0], s._last_seen)
+    np.testing.assert_array_equal(window[1], s._last_face)
+    np.testing.assert_allclose(window[2], s._last_local, atol=1e-9)
+
+
 def _comeback(streamed, offset, steps: int = 12, adopt_at: int | None = None):
     """Marker k's column ends at step 2; from step 6 the marker (moved by ``offset``) is seen in a
     column free until then; at step ``adopt_at`` a lock upgrade with the same points is adopted.
