@@ -164,6 +164,13 @@ class SolverConfig:
     # marker fit).  The same nine: joined columns fit 0.14-0.97x the first pass's on eight, and on the
     # ninth 1.31x with MPJPE 8.7 -> 11.4 mm; a 3 s walk in 87 columns 3.6 -> 12.9 mm fit, 18.9 -> 30.8 MPJPE.
     track_stitching_max_fit_ratio: float = 1.1
+    # Beyond the paper (speed): the second pass starts from the first pass's body at Stage 3 (no part
+    # matching, Stage 1 or Stage 2) when that body fits its markers to this Stage-5 marker fit (mm) or
+    # better; None = the whole pipeline again.  None offline: on a whole take the joined columns' own
+    # Stage 2 finds a better body than the first pass's (session 48, 'breaks 1%' walk / jump seeds
+    # 0-2: MPJPE 10.0 mm from scratch, 11.9 warm; the walk seed 0 6.7 against 15.6).  The near-online
+    # bootstrap turns it on (fast_bootstrap_config).
+    track_stitching_warm_below_mm: float | None = None
     # Stop early for the stage ablation: None, "matching", "stage2" or "stage4".
     stop_after: str | None = None
     # None: decide full/partial body from the marker volume (published code); True/False forces it.
@@ -319,7 +326,8 @@ def solve(
     if all(len(chain) == 1 for chain in chains):
         return first
     joined, joined_vis = merge_columns(markers, vis, chains)
-    again = solve_columns(joined, joined_vis, rate_hz, up_axis, prior, shape_prior, model, chamfer_model, config, progress)
+    again = solve_columns(joined, joined_vis, rate_hz, up_axis, prior, shape_prior, model, chamfer_model, config, progress,
+                          start=first if _warm_enough(config, first) else None)
     fits = first.diagnostics["stage5_marker_fit_mm"], again.diagnostics["stage5_marker_fit_mm"]
     if fits[1] > config.track_stitching_max_fit_ratio * fits[0]:
         # the joined pass explains the markers worse: its solve went wrong, not the columns' split
@@ -327,6 +335,11 @@ def solve(
                                                 "joined_marker_fit_mm": fits[1], "chains": [[int(c) for c in chain] for chain in chains]}
         return first
     return _per_column(model, again, chains, markers.shape[1], first, stitch_s)
+
+
+def _warm_enough(config: SolverConfig, first: SolveResult) -> bool:
+    fit = first.diagnostics.get("stage5_marker_fit_mm")
+    return config.track_stitching_warm_below_mm is not None and fit is not None and fit <= config.track_stitching_warm_below_mm
 
 
 def marker_chains(model, result: SolveResult, markers: np.ndarray, visible: np.ndarray, rate_hz: float,
@@ -380,8 +393,12 @@ def solve_columns(
     chamfer_model=None,
     config: SolverConfig = SolverConfig(),
     progress: SolverProgress | None = None,
+    start: SolveResult | None = None,
 ) -> SolveResult:
-    """One pass of the staged solver over the columns as given (``solve``'s arguments; no stitching)."""
+    """One pass of the staged solver over the columns as given (``solve``'s arguments; no stitching).
+
+    start: a solve of the same frames (other columns allowed) whose body this pass starts from at
+    Stage 3 (a warm pass: no part matching, Stage 1 or Stage 2); None = the whole pipeline."""
     progress = progress or SolverProgress()
     chamfer_model = chamfer_model or model
     if config.stop_after not in (None, "matching", "stage2", "stage4"):
@@ -435,24 +452,25 @@ def solve_columns(
     diag["clusters"] = int(labels.max()) + 1
     diag["cluster_labels"] = labels.tolist()
 
-    # ---- Step 2: part matching (yaw starts = the Stage-1 hypotheses)
-    match_cfg = replace(config.matching, yaw_starts_deg=tuple(config.yaw_hypotheses_deg))
-    with timed("matching"):
-        match = match_markers_to_part(
-            chamfer_model, mk, vis, prior_root, prior_body, beta_prior, labels, up, match_cfg, config.force_full_body
+    if start is None:
+        # ---- Step 2: part matching (yaw starts = the Stage-1 hypotheses)
+        match_cfg = replace(config.matching, yaw_starts_deg=tuple(config.yaw_hypotheses_deg))
+        with timed("matching"):
+            match = match_markers_to_part(
+                chamfer_model, mk, vis, prior_root, prior_body, beta_prior, labels, up, match_cfg, config.force_full_body
+            )
+        losses["matching"] = match.error
+        diag.update(_match_diagnostics(model, match))
+        part_chamfer_ids = None if match.full_body else torch.as_tensor(match.vertex_ids, dtype=torch.long)
+        part_output_ids = None if match.full_body else part_vertex_ids(model, match.joints)
+        betas0 = torch.as_tensor(match.betas, dtype=torch.float32)
+        matched = BodyParams(
+            apply_root_offset(prior_root, torch.as_tensor(match.tilt, dtype=torch.float32)), prior_body.clone(),
+            torch.as_tensor(match.trans, dtype=torch.float32), betas0, torch.tensor(match.yaw),
         )
-    losses["matching"] = match.error
-    diag.update(_match_diagnostics(model, match))
-    part_chamfer_ids = None if match.full_body else torch.as_tensor(match.vertex_ids, dtype=torch.long)
-    part_output_ids = None if match.full_body else part_vertex_ids(model, match.joints)
-    betas0 = torch.as_tensor(match.betas, dtype=torch.float32)
-    matched = BodyParams(
-        apply_root_offset(prior_root, torch.as_tensor(match.tilt, dtype=torch.float32)), prior_body.clone(),
-        torch.as_tensor(match.trans, dtype=torch.float32), betas0, torch.tensor(match.yaw),
-    )
-    stage_results["matching"] = matched
-    if config.stop_after == "matching":
-        return _finish(model, matched, None, diag, seconds, losses, stage_results, up)
+        stage_results["matching"] = matched
+        if config.stop_after == "matching":
+            return _finish(model, matched, None, diag, seconds, losses, stage_results, up)
 
     def stages_1_to_5(pose_fitting_config: PoseFittingConfig, match: PartMatch, prior_root: torch.Tensor,
                       part_chamfer_ids, part_output_ids, diag: dict, losses: dict, stage_results: dict) -> SolveResult:
@@ -537,7 +555,12 @@ def solve_columns(
         stage_results["stage2"] = stage2_all
         if config.stop_after == "stage2":
             return _finish(model, stage2_all, None, diag, seconds, losses, stage_results, up, markers=mk, visible=vis, vertex_faces=vertex_faces, allowed=part_output_ids, corr_cfg=config.correspondence)
+        return stages_3_to_5(p2, cf_t, stage2_all, prior_root, part_output_ids, diag, losses, stage_results)
 
+    def stages_3_to_5(p2: BodyParams, cf_t: torch.Tensor, stage2_all: BodyParams, prior_root: torch.Tensor, part_output_ids,
+                      diag: dict, losses: dict, stage_results: dict) -> SolveResult:
+        """Stages 3-5 from a Stage-2 body: p2 on the frames cf_t (Stage 3's), stage2_all on every
+        frame (Stage 4's start); prior_root: the prior's roots with the camera tilt applied."""
         # ---- Stage 3 + Stage 4 on every frame
         with timed("stage3"):
             att = find_marker_surface_points(model, mk[cf_t], vis[cf_t], p2, up, part_output_ids, config.correspondence, vertex_faces)
@@ -635,10 +658,26 @@ def solve_columns(
         diag["stage5_marker_fit_mm"] = 1000 * current_fit
         return _finish(model, current, current_att, diag, seconds, losses, stage_results, up)
 
+    def _warm_pass(start: SolveResult) -> SolveResult:
+        """Stages 3-5 from ``start``'s body: its part, yaw and camera tilt, its final poses as
+        Stage 2's (no part matching, no hypotheses, no chamfer fit)."""
+        d0 = start.diagnostics
+        diag.update({k: d0[k] for k in _WARM_CARRIED if k in d0})
+        diag["warm_start"] = True
+        joints = () if d0.get("full_body", True) else tuple(model.joint_names.index(n) for n in d0.get("part_joints", []))
+        part_output_ids = part_vertex_ids(model, joints) if joints else None
+        tilted_root = apply_root_offset(prior_root, torch.as_tensor(d0.get("camera_tilt", np.eye(3)), dtype=torch.float32))
+        params = start.params
+        stage_results["stage2"] = params
+        cf_t = torch.as_tensor(_evenly_spaced(data_frames, config.chamfer_frames))
+        return stages_3_to_5(params.frames(cf_t), cf_t, params, tilted_root, part_output_ids, diag, losses, stage_results)
+
     def run(pose_fitting_config: PoseFittingConfig) -> SolveResult:
         return stages_1_to_5(pose_fitting_config, match, prior_root, part_chamfer_ids, part_output_ids,
                              dict(diag), dict(losses), dict(stage_results))
 
+    if start is not None:
+        return _warm_pass(start)
     result = run(config.pose_fitting)
     if (config.stage2_smooth_alternative is None or config.stop_after is not None
             or result.diagnostics["stage5_marker_fit_mm"] <= config.stage2_smooth_trigger_mm):
@@ -658,6 +697,11 @@ def solve_columns(
     chosen.diagnostics["stage_seconds"] = {k: round(v, 3) for k, v in seconds.items()}  # both passes
     chosen.diagnostics["total_seconds"] = round(sum(seconds.values()), 3)
     return chosen
+
+
+# what a warm pass (solve_columns' ``start``) takes over from the solve it starts from
+_WARM_CARRIED = ("full_body", "volume_ratio", "part_joints", "part_candidates_tested", "matching_yaw_deg", "matching_energy",
+                 "yaw_starts", "hypotheses", "chosen_yaw_deg", "camera_tilt_deg", "camera_tilt")
 
 
 def _distinct_hypotheses(match: PartMatch, merge_deg: float) -> list[tuple[float, np.ndarray, float]]:

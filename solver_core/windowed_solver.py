@@ -140,6 +140,13 @@ def fast_bootstrap_config() -> SolverConfig:
         # columns never link, so their bootstrap is unchanged.  Session 46, the first 3 s of two
         # 'breaks 1%' takes: arms 93.8 -> 16.8 mm MPJPE (16.5 -> 22.2 s), walk 18.9 -> 11.1 (9.1 -> 16.2 s).
         track_stitching=StitchConfig(),
+        # ... and the joined pass starts from the first pass's body at Stage 3 when that fits its markers
+        # to 10 mm (SolverConfig.track_stitching_warm_below_mm; offline it starts over).  Session 48,
+        # 'breaks 1%' walk / jump seeds 0-2 (the arms' first passes fit 17-55 mm: unchanged), bootstrap
+        # 23-25 / 14-15 s against 29-53 / 32-40 (session 47, another bench beside both); MPJPE fixed-lag
+        # 13.5 -> 12.3 mm, recording 11.9 -> 11.1 (4 of 6 better, 1 level).  The first 3 s alone (own
+        # script, one start): the joined pass 4.3 s instead of 10-14, the window's MPJPE 13.7 against 14.6.
+        track_stitching_warm_below_mm=10.0,
         screening_frames=20,
         chamfer_frames=60,
         # The two best-registered yaws, or the best only when the next one registers over 2x worse
