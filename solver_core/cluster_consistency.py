@@ -36,6 +36,14 @@ class ClusterConsistencyConfig:
     # generated arms take, 39 markers in 133 columns: 66.0 mm MPJPE, 42 markers moved; without the
     # check 13.0, as the same take in whole columns, 13.0).  Whole columns span the take: unchanged.
     min_span_fraction: float = 0.5
+    # A marker is moved only to a point within this of it (mean distance over its frames, metres)
+    # under the body of the moment; None = no limit.  In a short window a rigid cluster can span
+    # bones that did not move apart (the first 3 s of a generated walk: a hip marker 0.54-0.61 m from
+    # two upper-arm markers, their distances' deviation 0.7-1.2 mm), and its move put that hip marker
+    # on the left elbow, 0.41 m off.  The near-online bootstrap sets 0.1 m (fast_bootstrap_config);
+    # offline it is off: on whole takes it never acts, and on fragmented ones (session 48, 'breaks 1%'
+    # arms, the moves it refused 0.5 m) the solves came out 1.4-2.0 mm worse on two of three.
+    max_point_distance_m: float | None = None
 
 
 def tree_distances(parents: np.ndarray) -> np.ndarray:

@@ -232,11 +232,12 @@ def find_marker_surface_points(
 
 def place_on_joints(model, markers: torch.Tensor, visible: torch.Tensor, params: BodyParams, up: torch.Tensor,
                     members, joints, allowed_vertex_ids, config: CorrespondenceConfig, vertex_faces,
-                    face_ids: torch.Tensor, bary: torch.Tensor, score: torch.Tensor) -> list[int]:
+                    face_ids: torch.Tensor, bary: torch.Tensor, score: torch.Tensor, max_score_m: float | None = None) -> list[int]:
     """Stage 3 for the markers ``members`` on the vertices whose dominant joint is in ``joints``
     (and in ``allowed_vertex_ids`` when given).  markers (T,M,3), visible (T,M), params for those
     frames.  Writes the new points into face_ids / bary / score (M,...) in place and returns the
-    markers placed."""
+    markers placed; max_score_m: a marker whose new point is farther than this from it (mean over
+    its frames, metres) keeps its old one (None: no limit)."""
     verts = torch.nonzero(torch.isin(vertex_dominant_joint(model), torch.tensor(list(joints)))).reshape(-1)
     if allowed_vertex_ids is not None:
         verts = verts[torch.isin(verts, torch.as_tensor(allowed_vertex_ids))]
@@ -245,6 +246,8 @@ def place_on_joints(model, markers: torch.Tensor, visible: torch.Tensor, params:
     idx = torch.as_tensor(list(members), dtype=torch.long)
     sub = find_marker_surface_points(model, markers[:, idx], visible[:, idx], params, up, verts, config, vertex_faces)
     ok = sub.face_ids >= 0
+    if max_score_m is not None:
+        ok &= sub.score_m <= max_score_m
     face_ids[idx[ok]] = sub.face_ids[ok]
     bary[idx[ok]] = sub.bary[ok]
     score[idx[ok]] = sub.score_m[ok]

@@ -274,7 +274,8 @@ def enforce_cluster_consistency(model, markers, visible, params, up, attachment:
     moved = 0
     for joints, members in groups.items():
         moved += len(place_on_joints(model, markers, visible, params, up, members, joints, allowed_vertex_ids,
-                                     config.correspondence, vertex_faces, face_ids, bary, score))
+                                     config.correspondence, vertex_faces, face_ids, bary, score,
+                                     config.cluster_consistency.max_point_distance_m))
     return MarkerAttachment(face_ids, bary, score), moved
 
 

@@ -147,6 +147,12 @@ def fast_bootstrap_config() -> SolverConfig:
         # 13.5 -> 12.3 mm, recording 11.9 -> 11.1 (4 of 6 better, 1 level).  The first 3 s alone (own
         # script, one start): the joined pass 4.3 s instead of 10-14, the window's MPJPE 13.7 against 14.6.
         track_stitching_warm_below_mm=10.0,
+        # The rigid-cluster check moves a marker only to a point within 10 cm of it
+        # (ClusterConsistencyConfig.max_point_distance_m): in 3 s bones that did not move apart look
+        # like one rigid group.  Session 48, the first 3 s of the 'breaks 1%' takes alone (own script):
+        # the arms' first passes 17-55 -> 3.3-4.9 mm marker fit (MPJPE 26-96 -> 12-19 mm), the window's
+        # MPJPE over the nine 15.4 -> 13.6; the moves it refused 0.43-1.07 m.
+        cluster_consistency=replace(c.cluster_consistency, max_point_distance_m=0.1),
         screening_frames=20,
         chamfer_frames=60,
         # The two best-registered yaws, or the best only when the next one registers over 2x worse

@@ -642,6 +642,53 @@ def test_cluster_consistency_leaves_columns_seen_over_a_short_part_of_the_take_o
     assert set(inconsistent_markers(labels, joints, parents, judged=seen_span_fraction(vis) >= 0.5)) == {3}
 
 
+def test_cluster_consistency_moves_a_marker_only_to_a_point_near_it():
+    """A rigid cluster on the left upper arm holds a marker on the right thigh (bones that did not
+    move apart in the take) and an arm marker Stage 3 put on the chest: the arm marker goes back to
+    the arm, the thigh marker keeps its point (the arm is 0.55 m from it)."""
+    from uuomocap.solver_core.body_model import load_body_model
+    from uuomocap.solver_core.body_params import BodyParams, MarkerAttachment, up_tensor
+    from uuomocap.solver_core.chamfer import vertex_face_table
+    from uuomocap.solver_core.inverse_kinematics import predicted_markers
+    from uuomocap.solver_core.parts import vertex_dominant_joint
+    from uuomocap.solver_core.staged_solver import SolverConfig, enforce_cluster_consistency, marker_part_names
+    from uuomocap.solver_core.windowed_solver import fast_bootstrap_config
+
+    model = load_body_model("open-low")
+    up = up_tensor("+z")
+    T = 3
+    params = BodyParams(torch.zeros(T, 3), torch.zeros(T, 23, 3), torch.zeros(T, 3), torch.zeros(model.num_betas), torch.tensor(0.0))
+    owner = vertex_dominant_joint(model)[model.faces].numpy()  # (F, 3) the corners' joints
+    names = model.joint_names
+
+    def faces_on(joint: str, count: int) -> list[int]:
+        whole = np.flatnonzero((owner == names.index(joint)).all(axis=1))
+        return whole[np.linspace(0, len(whole) - 1, count).round().astype(int)].tolist()
+
+    # cluster 0: four upper-arm markers and the thigh's; cluster 1: two chest and two thigh markers
+    arm, chest, thigh = faces_on("left_shoulder", 4), faces_on("spine3", 3), faces_on("right_hip", 3)
+    true_faces = arm + [thigh[0]] + chest[:2] + thigh[1:]
+    labels = np.array([0, 0, 0, 0, 0, 1, 1, 1, 1])
+    m = len(true_faces)
+    truth = MarkerAttachment(torch.tensor(true_faces), torch.full((m, 3), 1 / 3), torch.zeros(m))
+    markers = predicted_markers(model, params, truth, up, 0.0095, "face_normal")
+    visible = torch.ones(T, m, dtype=torch.bool)
+    stage3 = MarkerAttachment(truth.face_ids.clone(), truth.bary.clone(), torch.zeros(m))
+    stage3.face_ids[3] = chest[2]  # the fourth arm marker on the chest
+    vertex_faces = vertex_face_table(model.faces, model.v_template.shape[0])
+    config = fast_bootstrap_config()  # the near-online bootstrap's: a 3 s window
+    assert config.cluster_consistency.max_point_distance_m == 0.1
+    att, moved = enforce_cluster_consistency(model, markers, visible, params, up, stage3, labels, None, config, vertex_faces)
+    parts = marker_part_names(model, att)
+    assert moved == 1 and parts[3] == "left_shoulder" and parts[4] == "right_hip" and int(att.face_ids[4]) == thigh[0]
+    assert float(att.score_m[3]) < 0.01  # back on the arm, where the marker is
+    # without the limit (offline) the thigh marker goes to the arm as well, far from where it is
+    loose = SolverConfig()
+    assert loose.cluster_consistency.max_point_distance_m is None
+    att, moved = enforce_cluster_consistency(model, markers, visible, params, up, stage3, labels, None, loose, vertex_faces)
+    assert moved == 2 and marker_part_names(model, att)[4] != "right_hip" and float(att.score_m[4]) > 0.1
+
+
 def test_a_decisive_registration_screens_one_hypothesis():
     from uuomocap.solver_core.staged_solver import _screened_hypotheses
 
