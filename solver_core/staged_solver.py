@@ -244,6 +244,13 @@ def part_vertex_ids(model, joints: tuple[int, ...]) -> torch.Tensor | None:
     return torch.nonzero(torch.isin(dominant, torch.tensor(joints))).reshape(-1)
 
 
+def solved_part_joints(model, diagnostics: dict) -> tuple[int, ...]:
+    """Joint indices of the part a solve placed the markers on (its diagnostics), () for a full body."""
+    if diagnostics.get("full_body", True):
+        return ()
+    return tuple(model.joint_names.index(n) for n in diagnostics.get("part_joints", []))
+
+
 def marker_joint_ids(model, attachment: MarkerAttachment) -> np.ndarray:
     """(M,) dominant joint at each marker's surface point (-1 unassigned)."""
     dominant = torch.as_tensor(vertex_dominant_joint(model), dtype=torch.long)
@@ -665,7 +672,7 @@ def solve_columns(
         d0 = start.diagnostics
         diag.update({k: d0[k] for k in _WARM_CARRIED if k in d0})
         diag["warm_start"] = True
-        joints = () if d0.get("full_body", True) else tuple(model.joint_names.index(n) for n in d0.get("part_joints", []))
+        joints = solved_part_joints(model, d0)
         part_output_ids = part_vertex_ids(model, joints) if joints else None
         tilted_root = apply_root_offset(prior_root, torch.as_tensor(d0.get("camera_tilt", np.eye(3)), dtype=torch.float32))
         params = start.params

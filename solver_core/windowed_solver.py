@@ -82,6 +82,7 @@ from uuomocap.solver_core.staged_solver import (
     part_vertex_ids,
     preload_lazy_imports,
     solve,
+    solved_part_joints,
 )
 from uuomocap.solver_core.solve_worker import SolveCancelled
 from uuomocap.solver_core.track_stitching import StitchConfig, carried_positions, handover_links
@@ -143,7 +144,8 @@ def fast_bootstrap_config() -> SolverConfig:
         # ... and the joined pass starts from the first pass's body at Stage 3 when that fits its markers
         # to 10 mm (SolverConfig.track_stitching_warm_below_mm; offline it starts over).  Session 48,
         # 'breaks 1%' walk / jump seeds 0-2 (the arms' first passes fit 17-55 mm: unchanged), bootstrap
-        # 23-25 / 14-15 s against 29-53 / 32-40 (session 47, another bench beside both); MPJPE fixed-lag
+        # 23-25 s (walk, another bench beside) / 14-15 s (jump, alone) against 29-53 / 32-40 (session 47,
+        # another bench beside); MPJPE fixed-lag
         # 13.5 -> 12.3 mm, recording 11.9 -> 11.1 (4 of 6 better, 1 level).  The first 3 s alone (own
         # script, one start): the joined pass 4.3 s instead of 10-14, the window's MPJPE 13.7 against 14.6.
         track_stitching_warm_below_mm=10.0,
@@ -1329,17 +1331,14 @@ class WindowedSolver:
 
     def _part_joints_of(self, res) -> tuple[int, ...] | None:
         """Joint indices of the part a staged-solver result placed the markers on (None: a full body)."""
-        diag = res.diagnostics
-        if diag.get("full_body", True):
-            return None
-        return tuple(self.model.joint_names.index(n) for n in diag.get("part_joints", []))
+        return solved_part_joints(self.model, res.diagnostics) or None
 
     def _lock_from(self, res, column_owner: np.ndarray | None = None) -> tuple:
         """The lock (``_LOCK_FIELDS``) a staged-solver result implies.  column_owner (M,): the
         result's marker each column holds (-1: none), when the solve ran on markers joined from
         columns (``_upgrade_inputs``); None: the result's markers are the columns."""
         diag = res.diagnostics
-        joints = self._part_joints_of(res) or ()
+        joints = solved_part_joints(self.model, diag)
         faces, bary = res.attachment.face_ids.numpy().astype(np.int64), res.attachment.bary.double().numpy()
         if column_owner is not None:
             owner = np.asarray(column_owner)
